@@ -1,0 +1,152 @@
+"""Segmenter interface: one image (+ optional rendered depth and alpha) -> instance masks.
+
+Every backend (``geometric``: weight-free, the default; ``sam``: Segment Anything through
+onnxruntime with user-supplied model files) implements :class:`Segmenter` and is built from the
+``segment`` config section by :func:`make_segmenter`.
+
+Inputs (same for all backends)
+------------------------------
+* ``rgb``: float32 [H, W, 3], sRGB-encoded values in [0, 1].
+* ``depth``: float32 [H, W] expected depth along the camera z axis (OpenCV axes, z forward), in
+  scene units; ``None`` when unknown (e.g. a photo). Non-finite or <= 0 means "no surface".
+* ``alpha``: float32 [H, W] accumulated opacity in [0, 1]; ``None`` when unknown. Pixels with
+  low alpha are background (nothing rendered) and may be left out of every instance.
+
+Output
+------
+A list of :class:`Instance`, masks bool [H, W]. Masks of one call do not overlap (a backend that
+produces overlapping proposals resolves them, higher score first); pixels covered by no mask are
+"no instance". The order is by decreasing score.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Protocol, runtime_checkable
+
+import numpy as np
+
+from ..errors import ConfigError
+
+BACKENDS = ("geometric", "sam")
+
+
+@dataclass
+class Instance:
+    """One instance proposal in an image.
+
+    ``mask``: bool [H, W]. ``score``: confidence in [0, 1] (higher is better; backends define
+    it, e.g. SAM's predicted IoU x stability, or the geometric backend's boundary strength).
+    ``bbox``: (x0, y0, x1, y1) in pixels, x1/y1 exclusive; filled from the mask when omitted.
+    """
+
+    mask: np.ndarray
+    score: float = 1.0
+    bbox: tuple[int, int, int, int] | None = None
+
+    def __post_init__(self):
+        self.mask = np.asarray(self.mask, dtype=bool)
+        if self.mask.ndim != 2:
+            raise ValueError(f"Instance mask must be 2-D [H, W], got shape {self.mask.shape}")
+        if self.bbox is None:
+            self.bbox = mask_bbox(self.mask)
+
+    @property
+    def area(self) -> int:
+        """Number of pixels in the mask."""
+        return int(self.mask.sum())
+
+
+def mask_bbox(mask: np.ndarray) -> tuple[int, int, int, int]:
+    """Bounding box (x0, y0, x1, y1) of a bool mask, x1/y1 exclusive; (0, 0, 0, 0) if empty."""
+    ys = np.flatnonzero(mask.any(axis=1))
+    xs = np.flatnonzero(mask.any(axis=0))
+    if ys.size == 0:
+        return (0, 0, 0, 0)
+    return (int(xs[0]), int(ys[0]), int(xs[-1]) + 1, int(ys[-1]) + 1)
+
+
+@runtime_checkable
+class Segmenter(Protocol):
+    """Splits one image into instances. See the module docstring for shapes and units."""
+
+    def segment(self, rgb: np.ndarray, depth: np.ndarray | None = None,
+                alpha: np.ndarray | None = None) -> list[Instance]:
+        ...
+
+
+@dataclass
+class SegmentOptions:
+    """Options of the ``segment`` config section (defaults are the config defaults).
+
+    Shared
+    ------
+    backend: ``geometric`` (weight-free, default) or ``sam`` (needs the two ONNX files).
+    min_region_area: instances smaller than this many pixels are dropped (both backends).
+    alpha_min: pixels with rendered alpha below this are background (no instance).
+
+    ``geometric`` backend (gdiff/segment/geometric.py)
+    ---------------------------------------------------
+    depth_edge_rel: a depth jump between neighbouring pixels larger than this fraction of the
+        depth is an occlusion edge.
+    normal_edge_deg: a change of the surface normal (from the depth map) larger than this angle,
+        in degrees, is a crease edge.
+    color_edge: threshold on the illumination-invariant colour gradient (chromaticity and
+        log-intensity structure, see geometric.py) that makes a colour edge; 0 disables colour.
+    smooth_sigma: Gaussian blur (pixels, at the working resolution) before edge detection.
+    max_side: images are segmented at a resolution whose longer side is at most this many
+        pixels; masks are returned at full resolution.
+
+    ``sam`` backend (gdiff/segment/sam_onnx.py)
+    --------------------------------------------
+    sam_encoder, sam_decoder: paths of the user's SAM image-encoder and mask-decoder ONNX files.
+    points_per_side: prompt grid density (points_per_side^2 point prompts).
+    pred_iou_thresh, stability_score_thresh, box_nms_thresh: the usual automatic-mask-generator
+        filters.
+    """
+
+    backend: str = "geometric"
+    min_region_area: int = 64
+    alpha_min: float = 0.5
+    # geometric
+    depth_edge_rel: float = 0.04
+    normal_edge_deg: float = 35.0
+    color_edge: float = 0.15
+    smooth_sigma: float = 1.0
+    max_side: int = 640
+    # sam
+    sam_encoder: str | None = None
+    sam_decoder: str | None = None
+    points_per_side: int = 16
+    pred_iou_thresh: float = 0.8
+    stability_score_thresh: float = 0.9
+    box_nms_thresh: float = 0.7
+
+    def __post_init__(self):
+        if self.backend not in BACKENDS:
+            raise ConfigError(f"config key 'segment.backend': unknown value {self.backend!r}; "
+                              f"use one of {', '.join(BACKENDS)}")
+        if self.min_region_area < 1:
+            raise ConfigError("config key 'segment.min_region_area' must be >= 1")
+
+
+def make_segmenter(options: SegmentOptions | None = None) -> Segmenter:
+    """Build the backend named by ``options.backend``.
+
+    ``sam`` is imported lazily (it needs onnxruntime and the user's model files);
+    :class:`gdiff.errors.ModelFileError` is raised by it when the files are missing.
+    """
+    options = options or SegmentOptions()
+    if options.backend == "geometric":
+        from .geometric import GeometricSegmenter
+
+        return GeometricSegmenter(options)
+    if options.backend == "sam":
+        if not options.sam_encoder or not options.sam_decoder:
+            raise ConfigError("segment.backend is 'sam' but 'segment.sam_encoder' and/or "
+                              "'segment.sam_decoder' are not set; give the paths of the SAM "
+                              "ONNX files, or use backend: geometric (needs no model files)")
+        from .sam_onnx import SamOnnxSegmenter
+
+        return SamOnnxSegmenter(options)
+    raise ConfigError(f"config key 'segment.backend': unknown value {options.backend!r}")

@@ -11,6 +11,9 @@ Inputs (same for all backends)
   scene units; ``None`` when unknown (e.g. a photo). Non-finite or <= 0 means "no surface".
 * ``alpha``: float32 [H, W] accumulated opacity in [0, 1]; ``None`` when unknown. Pixels with
   low alpha are background (nothing rendered) and may be left out of every instance.
+* ``K``: float [3, 3] pinhole intrinsics of the image (pixel centres at +0.5), or ``None``.
+  Backends that use geometry (surface normals from ``depth``) use it; others ignore it. All
+  backends must accept the keyword.
 
 Output
 ------
@@ -71,7 +74,7 @@ class Segmenter(Protocol):
     """Splits one image into instances. See the module docstring for shapes and units."""
 
     def segment(self, rgb: np.ndarray, depth: np.ndarray | None = None,
-                alpha: np.ndarray | None = None) -> list[Instance]:
+                alpha: np.ndarray | None = None, K: np.ndarray | None = None) -> list[Instance]:
         ...
 
 

@@ -1,0 +1,256 @@
+"""Scene folders: discovery, validation, manifest.
+
+A scene folder holds::
+
+    before/*.png|jpg            images before the change (t = 0), at least 3
+    after/*.png|jpg             images after the change (t = 1), at least 3
+    eval/before/NAME, eval/after/NAME, eval/masks/NAME
+                                optional evaluation pairs at shared viewpoints with ground-truth
+                                change masks (255 = changed); every eval image needs its partner
+                                and its mask (matched by file stem)
+    cameras.json | transforms.json
+                                optional known poses (else COLMAP registers the images)
+
+The ``scenes`` config key names what to run on (see :func:`discover_scenes`):
+
+* ``synth:<preset>`` — a built-in synthetic scene that the workflow generates itself
+  (default ``synth:demo``);
+* a scene folder (has ``before/`` and ``after/``);
+* a folder of scene folders;
+* a TSV/CSV sheet with columns ``name``, ``path`` and optional per-scene overrides: extra
+  columns named ``<section>.<key>`` (e.g. ``fit.max_side``, ``poses.source``) whose cells
+  (YAML scalars) override the config for that scene; empty cells keep the default.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import re
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import cv2
+import yaml
+
+from .errors import ConfigError, SceneError
+from .io import IMAGE_EXTENSIONS, write_json
+
+MIN_IMAGES = 3
+SCENE_NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._-]*$")
+SYNTH_PREFIX = "synth:"
+
+
+@dataclass
+class SceneSpec:
+    """One scene to run: a name (results/<name>/), where its folder is, per-scene overrides."""
+
+    name: str
+    path: Path
+    overrides: dict[str, dict[str, Any]] = field(default_factory=dict)
+    synth_preset: str | None = None  # set when the workflow generates the scene itself
+
+    @property
+    def has_eval(self) -> bool:
+        """Whether the scene has evaluation pairs (synth scenes always do)."""
+        return self.synth_preset is not None or (self.path / "eval").is_dir()
+
+
+def list_images(folder: Path) -> list[Path]:
+    """Image files directly in ``folder`` (png/jpg), sorted by name; hidden files skipped."""
+    if not folder.is_dir():
+        return []
+    return sorted(p for p in folder.iterdir()
+                  if p.is_file() and p.suffix in IMAGE_EXTENSIONS and not p.name.startswith("."))
+
+
+def is_scene_folder(path: Path) -> bool:
+    return (path / "before").is_dir() and (path / "after").is_dir()
+
+
+def _check_name(name: str, where: str) -> str:
+    if not SCENE_NAME.match(name):
+        raise ConfigError(f"{where}: scene name {name!r} may contain only letters, digits, '.', "
+                          "'_' and '-' (it becomes the folder results/<name>/)")
+    return name
+
+
+def discover_scenes(spec: str | Path, synth_root: str | Path = "resources/synth",
+                    base: str | Path = ".") -> dict[str, SceneSpec]:
+    """Resolve the ``scenes`` config value into scenes, keyed by name (see module docstring).
+
+    Relative paths are taken relative to ``base`` (for a sheet: relative to the sheet's folder).
+    Raises :class:`ConfigError` with the offending value when nothing usable is found.
+    """
+    spec = str(spec).strip()
+    if spec.startswith(SYNTH_PREFIX):
+        preset = spec[len(SYNTH_PREFIX):]
+        _check_name(preset, "config key 'scenes'")
+        return {preset: SceneSpec(preset, Path(synth_root) / preset, synth_preset=preset)}
+    path = Path(spec)
+    if not path.is_absolute():
+        path = Path(base) / path
+    if not path.exists():
+        raise ConfigError(f"config key 'scenes': {spec} does not exist; give a scene folder "
+                          "(with before/ and after/), a folder of scene folders, a .tsv sheet, "
+                          "or synth:demo")
+    if path.is_file():
+        return read_scene_sheet(path)
+    if is_scene_folder(path):
+        name = _check_name(path.resolve().name, f"scene folder {path}")
+        return {name: SceneSpec(name, path)}
+    scenes = {}
+    for sub in sorted(p for p in path.iterdir() if p.is_dir() and not p.name.startswith(".")):
+        if is_scene_folder(sub):
+            name = _check_name(sub.name, f"scene folder {sub}")
+            scenes[name] = SceneSpec(name, sub)
+    if not scenes:
+        raise ConfigError(f"config key 'scenes': {path} is neither a scene folder (no before/ and "
+                          "after/ inside) nor a folder of scene folders (no sub-folder has both)")
+    return scenes
+
+
+def read_scene_sheet(path: str | Path) -> dict[str, SceneSpec]:
+    """Read a scenes sheet (TSV, or CSV by extension): ``name``, ``path``, ``section.key`` overrides.
+
+    Every problem names the sheet, the row (1 = first data row) and the column.
+    """
+    import pandas as pd
+
+    path = Path(path)
+    sep = "," if path.suffix.lower() == ".csv" else "\t"
+    try:
+        df = pd.read_csv(path, sep=sep, dtype=str, keep_default_na=False, comment="#")
+    except Exception as e:  # pandas raises several parser errors
+        raise ConfigError(f"scenes sheet {path}: cannot be parsed as "
+                          f"{'CSV' if sep == ',' else 'TSV'} ({e})") from None
+    df.columns = [c.strip() for c in df.columns]
+    missing = [c for c in ("name", "path") if c not in df.columns]
+    if missing:
+        raise ConfigError(f"scenes sheet {path}: missing column(s) {', '.join(missing)}; the "
+                          "header needs 'name' and 'path' (tab-separated), then optional "
+                          "'<section>.<key>' override columns")
+    override_cols = [c for c in df.columns if c not in ("name", "path")]
+    for c in override_cols:
+        if c.count(".") != 1:
+            raise ConfigError(f"scenes sheet {path}: column {c!r} is not of the form "
+                              "'<section>.<key>' (e.g. fit.max_side)")
+    scenes: dict[str, SceneSpec] = {}
+    for i, row in enumerate(df.itertuples(index=False), start=1):
+        row = dict(zip(df.columns, row))
+        name, p = row["name"].strip(), row["path"].strip()
+        where = f"scenes sheet {path}, row {i}"
+        if not name or not p:
+            raise ConfigError(f"{where}: 'name' and 'path' must both be filled in")
+        _check_name(name, where)
+        if name in scenes:
+            raise ConfigError(f"{where}: scene name {name!r} appears twice")
+        if p.startswith(SYNTH_PREFIX):
+            sub = discover_scenes(p)
+            scene_path, preset = next(iter(sub.values())).path, p[len(SYNTH_PREFIX):]
+        else:
+            scene_path = Path(p) if Path(p).is_absolute() else path.parent / p
+            preset = None
+            if not is_scene_folder(scene_path):
+                raise ConfigError(f"{where}: path {p} is not a scene folder (needs before/ and "
+                                  "after/ inside)")
+        overrides: dict[str, dict[str, Any]] = {}
+        for c in override_cols:
+            cell = row[c].strip()
+            if cell == "":
+                continue
+            section, key = c.split(".")
+            try:
+                overrides.setdefault(section, {})[key] = yaml.safe_load(cell)
+            except yaml.YAMLError:
+                raise ConfigError(f"{where}, column {c}: cannot read value {cell!r}") from None
+        scenes[name] = SceneSpec(name, scene_path, overrides, synth_preset=preset)
+    if not scenes:
+        raise ConfigError(f"scenes sheet {path}: no rows")
+    return scenes
+
+
+def _sha1(path: Path) -> str:
+    h = hashlib.sha1()
+    with open(path, "rb") as f:
+        for chunk in iter(lambda: f.read(1 << 20), b""):
+            h.update(chunk)
+    return h.hexdigest()
+
+
+def _image_size(path: Path) -> tuple[int, int]:
+    """(width, height) of an image, decoding it fully so corrupt files are caught here."""
+    img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    if img is None:
+        raise SceneError(f"{path}: cannot be decoded as an image (corrupt, truncated or not an "
+                         "image); replace or remove the file")
+    return int(img.shape[1]), int(img.shape[0])
+
+
+def validate_scene(scene_dir: str | Path) -> dict:
+    """Check a scene folder and return its manifest (see module docstring for the rules).
+
+    Manifest: ``{"scene": path, "width", "height", "images": [{"path": rel, "set": before|after|
+    eval_before|eval_after|eval_mask, "width", "height", "sha1"}], "eval_views": [stems]}``.
+    Raises :class:`SceneError` naming the folder or file and the fix.
+    """
+    root = Path(scene_dir)
+    if not root.is_dir():
+        raise SceneError(f"scene folder {root} does not exist")
+    images: list[dict] = []
+    sets = {"before": root / "before", "after": root / "after"}
+    for name, folder in sets.items():
+        if not folder.is_dir():
+            raise SceneError(f"{root}: missing folder {name}/ (put the images taken "
+                             f"{'before' if name == 'before' else 'after'} the change there)")
+        files = list_images(folder)
+        if not files:
+            raise SceneError(f"{folder}: no images (.png/.jpg) found")
+        if len(files) < MIN_IMAGES:
+            raise SceneError(f"{folder}: only {len(files)} image(s); at least {MIN_IMAGES} are "
+                             "needed to register and fit a scene (more overlapping views give "
+                             "better results)")
+        images += [{"path": str(p.relative_to(root)), "set": name} for p in files]
+    eval_views: list[str] = []
+    ev = root / "eval"
+    if ev.is_dir():
+        parts = {k: {p.stem: p for p in list_images(ev / k)} for k in ("before", "after", "masks")}
+        stems = set(parts["before"]) | set(parts["after"])
+        if not stems:
+            raise SceneError(f"{ev}: folder exists but eval/before/ and eval/after/ hold no "
+                             "images; remove eval/ or add the evaluation pairs")
+        for stem in sorted(stems):
+            for k in ("before", "after", "masks"):
+                if stem not in parts[k]:
+                    have = [kk for kk in ("before", "after", "masks") if stem in parts[kk]]
+                    raise SceneError(f"{ev}: eval view '{stem}' has {', '.join(have)} but no "
+                                     f"eval/{k}/{stem}.* ; every eval view needs before, after "
+                                     "and masks images with the same name")
+            images += [{"path": str(parts["before"][stem].relative_to(root)), "set": "eval_before"},
+                       {"path": str(parts["after"][stem].relative_to(root)), "set": "eval_after"},
+                       {"path": str(parts["masks"][stem].relative_to(root)), "set": "eval_mask"}]
+            eval_views.append(stem)
+        extra = set(parts["masks"]) - stems
+        if extra:
+            raise SceneError(f"{ev / 'masks'}: mask(s) {', '.join(sorted(extra))} have no "
+                             "eval/before and eval/after images")
+    size = None
+    for rec in images:
+        w, h = _image_size(root / rec["path"])
+        rec["width"], rec["height"] = w, h
+        if size is None:
+            size = (w, h, rec["path"])
+        elif (w, h) != size[:2]:
+            raise SceneError(f"{root / rec['path']}: size {w}x{h} differs from {size[2]} "
+                             f"({size[0]}x{size[1]}); all images of a scene must have the same "
+                             "size (resize them, or split the scene)")
+        rec["sha1"] = _sha1(root / rec["path"])
+    return {"scene": str(root.resolve()), "width": size[0], "height": size[1],
+            "images": images, "eval_views": eval_views}
+
+
+def write_manifest(scene_dir: str | Path, out_path: str | Path) -> dict:
+    """Validate ``scene_dir`` and write its manifest JSON atomically; returns the manifest."""
+    manifest = validate_scene(scene_dir)
+    write_json(out_path, manifest)
+    return manifest

@@ -1,0 +1,41 @@
+# Instance segmentation + tracking with one ID space, then ID comparison -> change masks.
+
+
+rule segment:
+    input:
+        index=res("{scene}", "render", "frames.json"),
+        poses=res("{scene}", "sequence", "poses.json"),
+    output:
+        index=res("{scene}", "instances", "index.json"),
+        tracks=res("{scene}", "instances", "tracks.csv"),
+    params:
+        segment=options("segment"),
+        track=options("track"),
+    threads: 2
+    conda:
+        "../envs/gdiff.yaml"
+    log:
+        "logs/{scene}/segment.log",
+    benchmark:
+        res("{scene}", "benchmarks", "segment.tsv")
+    script:
+        "../scripts/segment.py"
+
+
+rule compare:
+    input:
+        index=res("{scene}", "instances", "index.json"),
+        poses=res("{scene}", "sequence", "poses.json"),
+    output:
+        keyframes=res("{scene}", "change", "keyframes.csv"),
+        changes=res("{scene}", "change", "changes.csv"),
+    params:
+        options=options("compare"),
+    conda:
+        "../envs/gdiff.yaml"
+    log:
+        "logs/{scene}/compare.log",
+    benchmark:
+        res("{scene}", "benchmarks", "compare.tsv")
+    script:
+        "../scripts/compare.py"

@@ -1,0 +1,40 @@
+# Interpolated camera paths (P~1 before poses, P~2 after poses) rendered at t=0 and t=1.
+
+
+rule interpolate:
+    input:
+        cameras=res("{scene}", "poses", "cameras.json"),
+    output:
+        poses=res("{scene}", "sequence", "poses.json"),
+    params:
+        options=options("interpolate"),
+    conda:
+        "../envs/gdiff.yaml"
+    log:
+        "logs/{scene}/interpolate.log",
+    benchmark:
+        res("{scene}", "benchmarks", "interpolate.tsv")
+    script:
+        "../scripts/interpolate.py"
+
+
+rule render:
+    input:
+        model=res("{scene}", "fit", "model.pt"),
+        poses=res("{scene}", "sequence", "poses.json"),
+    output:
+        index=res("{scene}", "render", "frames.json"),
+    params:
+        options=options("render"),
+        device=config["device"],
+    threads: 2
+    resources:
+        gpu=GPU,
+    conda:
+        "../envs/gdiff.yaml"
+    log:
+        "logs/{scene}/render.log",
+    benchmark:
+        res("{scene}", "benchmarks", "render.tsv")
+    script:
+        "../scripts/render.py"

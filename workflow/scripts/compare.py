@@ -1,0 +1,13 @@
+"""Rule compare: IDs present at one time only -> change masks per pose and time."""
+import _bootstrap  # noqa: F401  (gdiff from this checkout)
+from pathlib import Path
+
+from gdiff.change import CompareOptions
+from gdiff.options import from_config
+from gdiff.segtrack import compare
+from gdiff.stage import run_stage
+
+run_stage(snakemake, lambda: compare(
+    Path(snakemake.input.index).parent, snakemake.input.poses,
+    Path(snakemake.output.keyframes).parent,
+    from_config(CompareOptions, snakemake.params.options, "compare")))

@@ -1,0 +1,15 @@
+"""Rule segment: instance segmentation of every rendered frame + tracking in one ID space."""
+import _bootstrap  # noqa: F401  (gdiff from this checkout)
+from pathlib import Path
+
+from gdiff.options import from_config
+from gdiff.segment import SegmentOptions
+from gdiff.segtrack import segment_and_track
+from gdiff.stage import run_stage
+from gdiff.track import TrackOptions
+
+run_stage(snakemake, lambda: segment_and_track(
+    Path(snakemake.input.index).parent, snakemake.input.poses,
+    Path(snakemake.output.index).parent,
+    from_config(SegmentOptions, snakemake.params.segment, "segment"),
+    from_config(TrackOptions, snakemake.params.track, "track")))

@@ -1,0 +1,276 @@
+"""Weight-free instance proposals from rendered geometry and illumination-invariant colour.
+
+The image is cut along three kinds of boundaries, then the pieces are the instances:
+
+* occlusion edges: jumps of the rendered depth. Measured on inverse depth ``w = 1/z``, which is
+  an affine function of the pixel coordinates on any plane seen by a pinhole camera, so its
+  second difference is ~0 on planes (also a floor seen at a grazing angle) and ~ the relative
+  depth jump at an occlusion boundary (intrinsics-free).
+* crease edges: a change of the surface normal (normals from the back-projected depth with the
+  intrinsics ``K``; when ``K`` is unknown a 53-degree field of view is assumed). Separates an
+  object from the support it stands on, where depth is continuous.
+* colour edges: gradients of linear-RGB chromaticity (r, g over r+g+b). Chromaticity does not
+  change when a surface gets brighter or darker (shading, shadows of a white light, exposure),
+  so these edges stay put under lighting changes; raw intensity edges are not used.
+
+Pixels on edges are then given to the adjacent region of most similar depth (or colour when
+there is no depth), so masks cover the objects up to their silhouettes. All work happens at a
+resolution whose longer side is ``max_side``; masks are returned at full resolution.
+"""
+
+from __future__ import annotations
+
+import logging
+
+import cv2
+import numpy as np
+
+from ..io import srgb_to_linear
+from .base import Instance, SegmentOptions
+
+log = logging.getLogger("gdiff.segment.geometric")
+
+_DEFAULT_FOCAL_FACTOR = 1.0  # f = factor * max(H, W): ~53 degree field of view
+
+
+def _fill_invalid(x: np.ndarray, valid: np.ndarray) -> np.ndarray:
+    """Replace invalid pixels of ``x`` [H, W] by the value of the nearest valid pixel."""
+    if valid.all() or not valid.any():
+        return x
+    from scipy.ndimage import distance_transform_edt
+
+    idx = distance_transform_edt(~valid, return_distances=False, return_indices=True)
+    return x[idx[0], idx[1]]
+
+
+def _shift_pairs(step: int):
+    """Offsets (dy, dx) of the four directions (horizontal, vertical, two diagonals)."""
+    return [(0, step), (step, 0), (step, step), (step, -step)]
+
+
+def _shifted(x: np.ndarray, dy: int, dx: int) -> np.ndarray:
+    """``x`` moved by (dy, dx) with edge replication: out[y, x] = x[y + dy, x + dx]."""
+    H, W = x.shape[:2]
+    pad = max(abs(dy), abs(dx))
+    xp = cv2.copyMakeBorder(x, pad, pad, pad, pad, cv2.BORDER_REPLICATE)
+    return xp[pad + dy:pad + dy + H, pad + dx:pad + dx + W]
+
+
+def depth_edges(depth: np.ndarray, valid: np.ndarray, rel: float, sigma: float,
+                step: int = 2) -> np.ndarray:
+    """Occlusion edges of a depth map.
+
+    ``depth``: float32 [H, W] z-depth (scene units). Returns bool [H, W]: the second difference of
+    inverse depth over ``step`` pixels, relative to the inverse depth, exceeds ``rel`` in any of
+    four directions. Zero on planes; ~ the relative depth jump across an occlusion boundary.
+    """
+    z = _fill_invalid(depth.astype(np.float32), valid)
+    w = 1.0 / np.maximum(z, 1e-6)
+    if sigma > 0:
+        w = cv2.GaussianBlur(w, (0, 0), sigma)
+    out = np.zeros(w.shape, dtype=bool)
+    for dy, dx in _shift_pairs(step):
+        d2 = np.abs(_shifted(w, dy, dx) - 2.0 * w + _shifted(w, -dy, -dx))
+        out |= d2 > rel * w
+    return out
+
+
+def depth_normals(depth: np.ndarray, K: np.ndarray, sigma: float) -> np.ndarray:
+    """Unit surface normals [H, W, 3] (camera frame, OpenCV axes) from a z-depth map [H, W].
+
+    Points are back-projected through pixel centres (+0.5) with intrinsics ``K`` [3, 3]; the
+    normal is the cross product of the central differences along x and y, facing the camera.
+    """
+    H, W = depth.shape
+    z = depth.astype(np.float32)
+    if sigma > 0:
+        z = cv2.GaussianBlur(z, (0, 0), sigma)
+    u = (np.arange(W, dtype=np.float32) + 0.5 - K[0, 2]) / K[0, 0]
+    v = (np.arange(H, dtype=np.float32) + 0.5 - K[1, 2]) / K[1, 1]
+    P = np.stack([z * u[None, :], z * v[:, None], z], axis=-1)
+    du = _shifted(P, 0, 1) - _shifted(P, 0, -1)
+    dv = _shifted(P, 1, 0) - _shifted(P, -1, 0)
+    n = np.cross(du, dv)
+    n /= np.linalg.norm(n, axis=-1, keepdims=True) + 1e-12
+    # face the camera: normal . viewing ray < 0
+    flip = (n * P).sum(-1) > 0
+    n[flip] *= -1
+    return n
+
+
+def crease_edges(depth: np.ndarray, valid: np.ndarray, K: np.ndarray, max_deg: float,
+                 sigma: float, step: int = 2) -> np.ndarray:
+    """Crease edges: the normals ``step`` pixels apart on either side differ by > ``max_deg``."""
+    z = _fill_invalid(depth.astype(np.float32), valid)
+    n = depth_normals(z, K, sigma)
+    cos_max = np.cos(np.deg2rad(max_deg))
+    out = np.zeros(z.shape, dtype=bool)
+    for dy, dx in _shift_pairs(step)[:2]:
+        c = (_shifted(n, dy, dx) * _shifted(n, -dy, -dx)).sum(-1)
+        out |= c < cos_max
+    return out
+
+
+def chromaticity(rgb: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Chromaticity (r, g) / (r + g + b) of linear RGB [H, W, 2] and a confidence in [0, 1] [H, W].
+
+    ``rgb`` is sRGB-encoded float32 [H, W, 3]. The confidence falls to 0 for dark pixels, whose
+    chromaticity is dominated by noise.
+    """
+    lin = srgb_to_linear(rgb)
+    s = lin.sum(-1)
+    chrom = lin[..., :2] / np.maximum(s, 1e-4)[..., None]
+    conf = np.clip(s / 0.06, 0.0, 1.0)  # below ~2% mean linear intensity: unreliable
+    return chrom.astype(np.float32), conf.astype(np.float32)
+
+
+def color_edges(rgb: np.ndarray, thresh: float, sigma: float) -> np.ndarray:
+    """Chromaticity edges: bool [H, W] where the confidence-weighted gradient magnitude of
+    the chromaticity (per pixel, Sobel) exceeds ``thresh``."""
+    chrom, conf = chromaticity(rgb)
+    if sigma > 0:
+        chrom = cv2.GaussianBlur(chrom, (0, 0), sigma)
+    g = np.zeros(conf.shape, dtype=np.float32)
+    for c in range(2):
+        gx = cv2.Sobel(chrom[..., c], cv2.CV_32F, 1, 0, ksize=3) / 8.0
+        gy = cv2.Sobel(chrom[..., c], cv2.CV_32F, 0, 1, ksize=3) / 8.0
+        g += gx * gx + gy * gy
+    g = np.sqrt(g) * cv2.erode(conf, np.ones((3, 3), np.uint8))
+    # chromaticity varies within ~[0, 1]; normalise so thresh is a fraction of that per pixel
+    return g > thresh * 0.1
+
+
+def grow_into(labels: np.ndarray, todo: np.ndarray, feat: np.ndarray, max_iter: int = 50) -> np.ndarray:
+    """Give unlabelled pixels (``todo``) the label of the adjacent region with the closest mean
+    feature, growing one pixel ring per iteration.
+
+    ``labels``: int32 [H, W], 0 = unlabelled. ``feat``: float32 [H, W, C] (e.g. log depth).
+    """
+    labels = labels.copy()
+    n = int(labels.max())
+    if n == 0:
+        return labels
+    C = feat.shape[-1]
+    flat = labels.ravel()
+    means = np.zeros((n + 1, C), np.float64)
+    counts = np.bincount(flat, minlength=n + 1).astype(np.float64)
+    for c in range(C):
+        means[:, c] = np.bincount(flat, weights=feat[..., c].ravel(), minlength=n + 1)
+    means /= np.maximum(counts, 1)[:, None]
+    todo = todo & (labels == 0)
+    for _ in range(max_iter):
+        if not todo.any():
+            break
+        best = np.full(labels.shape, np.inf, np.float32)
+        new = np.zeros_like(labels)
+        for dy in (-1, 0, 1):
+            for dx in (-1, 0, 1):
+                if dy == 0 and dx == 0:
+                    continue
+                nb = _shifted(labels, dy, dx)
+                cand = todo & (nb > 0)
+                if not cand.any():
+                    continue
+                d = np.abs(feat[cand] - means[nb[cand]]).sum(-1).astype(np.float32)
+                cur = best[cand]
+                better = d < cur
+                idx = np.flatnonzero(cand.ravel())[better]
+                best.ravel()[idx] = d[better]
+                new.ravel()[idx] = nb[cand][better]
+        grown = new > 0
+        if not grown.any():
+            break
+        labels[grown] = new[grown]
+        todo &= ~grown
+    return labels
+
+
+class GeometricSegmenter:
+    """Weight-free segmenter (``segment.backend: geometric``); see the module docstring."""
+
+    def __init__(self, options: SegmentOptions | None = None):
+        self.options = options or SegmentOptions()
+
+    def label(self, rgb: np.ndarray, depth: np.ndarray | None = None,
+              alpha: np.ndarray | None = None, K: np.ndarray | None = None) -> np.ndarray:
+        """Region labels int32 [H, W] at full resolution (0 = no instance), by decreasing area."""
+        o = self.options
+        rgb = np.asarray(rgb, dtype=np.float32)
+        H, W = rgb.shape[:2]
+        s = min(1.0, o.max_side / max(H, W))
+        h, w = max(1, int(round(H * s))), max(1, int(round(W * s)))
+        interp = cv2.INTER_AREA
+
+        def small(x):
+            return x if (h, w) == (H, W) else cv2.resize(x, (w, h), interpolation=interp)
+
+        rgb_s = small(rgb)
+        valid = np.ones((h, w), bool)
+        if alpha is not None:
+            valid &= small(np.asarray(alpha, np.float32)) >= o.alpha_min
+        edges = np.zeros((h, w), bool)
+        feat = None
+        if depth is not None:
+            z = np.asarray(depth, np.float32)
+            zvalid = np.isfinite(z) & (z > 0)
+            z = np.where(zvalid, z, 0).astype(np.float32)
+            z_s = cv2.resize(z, (w, h), interpolation=cv2.INTER_NEAREST)
+            zv_s = cv2.resize(zvalid.astype(np.uint8), (w, h), interpolation=cv2.INTER_NEAREST) > 0
+            valid &= zv_s
+            if zv_s.any():
+                if K is None:
+                    f = _DEFAULT_FOCAL_FACTOR * max(h, w)
+                    Ks = np.array([[f, 0, w / 2], [0, f, h / 2], [0, 0, 1]], np.float64)
+                else:
+                    Ks = np.asarray(K, np.float64).copy()
+                    Ks[0] *= w / W
+                    Ks[1] *= h / H
+                edges |= depth_edges(z_s, zv_s, o.depth_edge_rel, o.smooth_sigma)
+                edges |= crease_edges(z_s, zv_s, Ks, o.normal_edge_deg, o.smooth_sigma)
+                feat = np.log(np.maximum(_fill_invalid(z_s, zv_s), 1e-6))[..., None]
+        if o.color_edge > 0:
+            edges |= color_edges(rgb_s, o.color_edge, o.smooth_sigma)
+        if feat is None:
+            chrom, _ = chromaticity(rgb_s)
+            feat = chrom
+        n, labels = cv2.connectedComponents((valid & ~edges).astype(np.uint8), connectivity=4)
+        min_area = max(1, int(round(o.min_region_area * s * s)))
+        areas = np.bincount(labels.ravel(), minlength=n)
+        small_ids = np.flatnonzero(areas < min_area)
+        labels[np.isin(labels, small_ids)] = 0
+        labels = grow_into(labels.astype(np.int32), valid & (labels == 0),
+                           feat.astype(np.float32))
+        if (h, w) != (H, W):
+            labels = cv2.resize(labels, (W, H), interpolation=cv2.INTER_NEAREST)
+            if alpha is not None:
+                labels[np.asarray(alpha) < o.alpha_min] = 0
+        # relabel by decreasing area, dropping regions that ended up too small
+        areas = np.bincount(labels.ravel())
+        areas[0] = 0
+        order = [i for i in np.argsort(-areas) if areas[i] >= o.min_region_area]
+        lut = np.zeros(len(areas), np.int32)
+        lut[order] = np.arange(1, len(order) + 1)
+        return lut[labels]
+
+    def segment(self, rgb: np.ndarray, depth: np.ndarray | None = None,
+                alpha: np.ndarray | None = None, K: np.ndarray | None = None) -> list[Instance]:
+        """Instances (non-overlapping, by decreasing area); see :mod:`gdiff.segment.base`.
+
+        The score is 1 - the fraction of the region touching the image border, so regions cut
+        by the frame rank lower.
+        """
+        labels = self.label(rgb, depth, alpha, K)
+        out = []
+        n = int(labels.max())
+        if n == 0:
+            return out
+        border = np.zeros(labels.shape, bool)
+        border[[0, -1], :] = True
+        border[:, [0, -1]] = True
+        per = np.bincount(labels[border], minlength=n + 1).astype(np.float64)
+        H, W = labels.shape
+        for i in range(1, n + 1):
+            m = labels == i
+            score = 1.0 - min(1.0, per[i] / (2.0 * (H + W)) * 4.0)
+            out.append(Instance(mask=m, score=float(score)))
+        return out

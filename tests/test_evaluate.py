@@ -1,0 +1,154 @@
+"""Evaluate stage and baselines on small image pairs with known changes."""
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from gdiff import baselines as B
+from gdiff import evaluate as E
+from gdiff.cameras import Camera, look_at, save_cameras
+from gdiff.errors import SceneError
+from gdiff.io import read_image, read_mask, write_image, write_mask
+
+H, W = 48, 64
+
+
+def _texture(seed):
+    rng = np.random.default_rng(seed)
+    base = rng.uniform(0.2, 0.8, (H // 8, W // 8, 3)).astype(np.float32)
+    img = np.kron(base, np.ones((8, 8, 1), np.float32))  # blocky texture
+    return np.clip(img + rng.normal(0, 0.01, img.shape).astype(np.float32), 0, 1)
+
+
+def _pair(seed, box):
+    """Before: textured background; after: a flat-coloured object added in ``box``."""
+    before = _texture(seed)
+    after = before.copy()
+    x0, y0, x1, y1 = box
+    after[y0:y1, x0:x1] = (0.95, 0.1, 0.1)
+    after = np.clip(after + np.random.default_rng(seed + 1).normal(0, 0.01, after.shape), 0, 1)
+    mask = np.zeros((H, W), bool)
+    mask[y0:y1, x0:x1] = True
+    return before, after.astype(np.float32), mask
+
+
+def _scene(tmp_path, post_only=()):
+    root = tmp_path / "scene"
+    boxes = {"000": (8, 8, 24, 20), "001": (30, 20, 50, 40), "002": (4, 30, 14, 44)}
+    cams = []
+    for i, (name, box) in enumerate(boxes.items()):
+        before, after, mask = _pair(i, box)
+        if name not in post_only:
+            write_image(root / "eval" / "before" / f"{name}.png", before)
+        write_image(root / "eval" / "after" / f"{name}.png", after)
+        write_mask(root / "eval" / "masks" / f"{name}.png", mask)
+        # cameras at twice the eval resolution: the stage must scale them to the masks
+        for st in ("eval_before", "eval_after"):
+            cams.append(Camera(2 * W, 2 * H, 100.0, 100.0, W, H,
+                               look_at([i, -3.0, 1.0], [0, 0, 0]),
+                               image=f"eval/{st[5:]}/{name}.png", set=st,
+                               time=0 if st == "eval_before" else 1))
+    save_cameras(root / "cameras.json", cams)
+    return root, boxes
+
+
+def test_pixel_diff_finds_added_object():
+    before, after, mask = _pair(3, (10, 10, 30, 26))
+    pred = B.pixel_diff(before, after, blur_sigma=1.0, min_threshold=0.05)
+    from gdiff.metrics import score_view
+
+    s, _ = score_view(pred.mask, mask, pred.prob)
+    assert s["F1"] > 0.85 and s["box_TP"] == 1 and s["box_FP"] == 0
+    # identical images: the floor keeps Otsu from splitting noise into "change"
+    same = B.pixel_diff(before, before + 0.004, blur_sigma=1.0)
+    assert not same.mask.any()
+    with pytest.raises(ValueError, match="differ in size"):
+        B.pixel_diff(before, after[:-1])
+
+
+def test_find_eval_views_matches_cameras_and_checks_layout(tmp_path):
+    root, boxes = _scene(tmp_path)
+    views = E.find_eval_views(root, root / "cameras.json")
+    assert [v.name for v in views] == sorted(boxes)
+    v = views[1]
+    assert v.before.name == "001.png" and v.after.parent.name == "after"
+    assert v.camera.set == "eval_after"
+    cam = v.camera_at_gt_size()
+    assert (cam.width, cam.height) == (W, H) and cam.fx == pytest.approx(50.0)
+    # an eval image without a mask is a user error naming the file
+    write_image(root / "eval" / "after" / "009.png", np.zeros((H, W, 3)))
+    with pytest.raises(SceneError, match="009"):
+        E.find_eval_views(root)
+
+
+def test_evaluate_scene_side_by_side(tmp_path):
+    root, boxes = _scene(tmp_path)
+    gts = {n: read_mask(root / "eval" / "masks" / f"{n}.png") for n in boxes}
+
+    def fake_detect(rgb0, rgb1, depth0=None, depth1=None):
+        # stands in for segment + track + compare: the changed object is seen only after
+        d = np.abs(rgb1 - rgb0).max(axis=2) > 0.3
+        return np.zeros_like(d), d
+
+    seen_cams = []
+
+    def fake_change_map(pmodel, camera, t=None):
+        seen_cams.append(camera)
+        name = pmodel[round(camera.center[0])]
+        m = gts[name].copy()
+        m[:, :2] = True  # a thin false strip
+        return {"mask": m, "prob": np.where(m, 0.9, 0.1)}
+
+    methods = {"pixel_diff": B.pixel_diff_method(blur_sigma=1.0),
+               "idcompare": B.idcompare_method(detect=fake_detect),
+               "partition": B.partition_method(dict(enumerate(sorted(boxes))),
+                                               render_change_map=fake_change_map)}
+    out = tmp_path / "results" / "scene" / "eval"
+    df = E.evaluate_scene(root, root / "cameras.json", out, "scene", methods, E.EvalOptions())
+    assert list(df.columns) == E.METRIC_COLUMNS
+    assert len(df) == 9 and set(df["method"]) == set(methods)
+    assert all((c.width, c.height) == (W, H) for c in seen_cams)
+    part = df[df["method"] == "partition"]
+    assert (part["R"] == 1.0).all() and (part["P"] < 1.0).all()
+    assert (part["box_TP"] == 1).all()
+    assert (df[df["method"] == "idcompare"]["F1"] > 0.9).all()
+    back = pd.read_csv(out / "metrics.csv")
+    assert back[["TP", "FP", "FN"]].to_numpy().tolist() == df[["TP", "FP", "FN"]].to_numpy().tolist()
+    summ = pd.read_csv(out / "scene_summary.csv")
+    assert set(summ["method"]) == set(methods) and (summ["n_views"] == 3).all()
+    boxes_csv = pd.read_csv(out / "boxes.csv")
+    assert ((boxes_csv["kind"] == "gt").sum()) == 9  # 3 GT boxes x 3 methods
+    m = read_mask(out / "maps" / "partition" / "000.png")
+    assert m[:, :2].all()
+    ov = read_image(out / "overlays" / "001.png")
+    assert ov.shape == (3 * H, 4 * W, 3)
+    # TP pixels are green in the error panel of the partition row (third row, fourth panel)
+    x0, y0, x1, y1 = boxes["001"]
+    cell = ov[2 * H + (y0 + y1) // 2, 3 * W + (x0 + x1) // 2]
+    assert cell[1] > 0.6 and cell[0] < 0.3
+
+
+def test_post_only_views_use_renderer_or_are_skipped(tmp_path):
+    root, boxes = _scene(tmp_path, post_only=("001",))
+    opts = E.EvalOptions(methods=["pixel_diff"], overlays=False)
+    df = E.evaluate_scene(root, root / "cameras.json", tmp_path / "a", "s",
+                          E.build_methods(opts), opts)
+    assert sorted(df["view"]) == ["000", "002"]
+    rendered = []
+
+    def render(camera, t):
+        rendered.append((camera.width, t))
+        return _pair(1, boxes["001"])[0]  # the true before state of view 001
+
+    df = E.evaluate_scene(root, root / "cameras.json", tmp_path / "b", "s",
+                          E.build_methods(opts, render=render), opts)
+    assert sorted(df["view"]) == ["000", "001", "002"]
+    assert rendered == [(W, 0.0)]
+    assert df.set_index("view").loc["001", "F1"] > 0.85
+
+
+def test_options_are_checked():
+    with pytest.raises(ValueError, match="unknown"):
+        E.EvalOptions(methods=["pixel_diff", "magic"])
+    with pytest.raises(Exception, match="partition model"):
+        E.build_methods(E.EvalOptions())

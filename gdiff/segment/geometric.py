@@ -48,11 +48,31 @@ def _shift_pairs(step: int):
     return [(0, step), (step, 0), (step, step), (step, -step)]
 
 
-def _shifted(x: np.ndarray, dy: int, dx: int) -> np.ndarray:
-    """``x`` moved by (dy, dx) with edge replication: out[y, x] = x[y + dy, x + dx]."""
+def _pad_linear(x: np.ndarray, pad: int) -> np.ndarray:
+    """Pad [H, W(, C)] by ``pad`` pixels with linear extrapolation (point reflection), which
+    keeps affine functions affine (so planes show no edge at the image border)."""
+    widths = [(pad, pad), (pad, pad)] + [(0, 0)] * (x.ndim - 2)
+    return np.pad(x, widths, mode="reflect", reflect_type="odd")
+
+
+def _blur(x: np.ndarray, sigma: float) -> np.ndarray:
+    """Gaussian blur that leaves affine functions unchanged up to the image border."""
+    if sigma <= 0:
+        return x
+    pad = int(np.ceil(3 * sigma))
+    y = cv2.GaussianBlur(_pad_linear(x, pad), (0, 0), sigma)
+    return y[pad:-pad, pad:-pad]
+
+
+def _shifted(x: np.ndarray, dy: int, dx: int, linear: bool = False) -> np.ndarray:
+    """``x`` moved by (dy, dx): out[y, x] = x[y + dy, x + dx]; outside the image the border is
+    replicated, or linearly extrapolated when ``linear``."""
     H, W = x.shape[:2]
     pad = max(abs(dy), abs(dx))
-    xp = cv2.copyMakeBorder(x, pad, pad, pad, pad, cv2.BORDER_REPLICATE)
+    if pad == 0:
+        return x
+    xp = _pad_linear(x, pad) if linear else cv2.copyMakeBorder(x, pad, pad, pad, pad,
+                                                                cv2.BORDER_REPLICATE)
     return xp[pad + dy:pad + dy + H, pad + dx:pad + dx + W]
 
 
@@ -65,49 +85,61 @@ def depth_edges(depth: np.ndarray, valid: np.ndarray, rel: float, sigma: float,
     four directions. Zero on planes; ~ the relative depth jump across an occlusion boundary.
     """
     z = _fill_invalid(depth.astype(np.float32), valid)
-    w = 1.0 / np.maximum(z, 1e-6)
-    if sigma > 0:
-        w = cv2.GaussianBlur(w, (0, 0), sigma)
+    w = _blur(1.0 / np.maximum(z, 1e-6), sigma)
     out = np.zeros(w.shape, dtype=bool)
     for dy, dx in _shift_pairs(step):
-        d2 = np.abs(_shifted(w, dy, dx) - 2.0 * w + _shifted(w, -dy, -dx))
+        d2 = np.abs(_shifted(w, dy, dx, True) - 2.0 * w + _shifted(w, -dy, -dx, True))
         out |= d2 > rel * w
     return out
 
 
-def depth_normals(depth: np.ndarray, K: np.ndarray, sigma: float) -> np.ndarray:
-    """Unit surface normals [H, W, 3] (camera frame, OpenCV axes) from a z-depth map [H, W].
-
-    Points are back-projected through pixel centres (+0.5) with intrinsics ``K`` [3, 3]; the
-    normal is the cross product of the central differences along x and y, facing the camera.
-    """
+def depth_points(depth: np.ndarray, K: np.ndarray, sigma: float) -> np.ndarray:
+    """Camera-frame points [H, W, 3] (OpenCV axes) of a z-depth map [H, W] through the pixel
+    centres (+0.5) with intrinsics ``K`` [3, 3]. Depth is smoothed as inverse depth, which is
+    affine on planes, so planes stay planar."""
     H, W = depth.shape
-    z = depth.astype(np.float32)
-    if sigma > 0:
-        z = cv2.GaussianBlur(z, (0, 0), sigma)
+    z = 1.0 / np.maximum(_blur(1.0 / np.maximum(depth.astype(np.float32), 1e-6), sigma), 1e-9)
     u = (np.arange(W, dtype=np.float32) + 0.5 - K[0, 2]) / K[0, 0]
     v = (np.arange(H, dtype=np.float32) + 0.5 - K[1, 2]) / K[1, 1]
-    P = np.stack([z * u[None, :], z * v[:, None], z], axis=-1)
-    du = _shifted(P, 0, 1) - _shifted(P, 0, -1)
-    dv = _shifted(P, 1, 0) - _shifted(P, -1, 0)
+    return np.stack([z * u[None, :], z * v[:, None], z], axis=-1)
+
+
+def point_normals(P: np.ndarray) -> np.ndarray:
+    """Unit normals [H, W, 3] of a point map [H, W, 3], facing the camera at the origin."""
+    du = np.gradient(P, axis=1)  # one-sided at the image border
+    dv = np.gradient(P, axis=0)
     n = np.cross(du, dv)
     n /= np.linalg.norm(n, axis=-1, keepdims=True) + 1e-12
-    # face the camera: normal . viewing ray < 0
-    flip = (n * P).sum(-1) > 0
+    flip = (n * P).sum(-1) > 0  # face the camera: normal . viewing ray < 0
     n[flip] *= -1
     return n
 
 
+def depth_normals(depth: np.ndarray, K: np.ndarray, sigma: float) -> np.ndarray:
+    """Unit surface normals [H, W, 3] (camera frame, OpenCV axes) from a z-depth map [H, W]."""
+    return point_normals(depth_points(depth, K, sigma))
+
+
 def crease_edges(depth: np.ndarray, valid: np.ndarray, K: np.ndarray, max_deg: float,
-                 sigma: float, step: int = 2) -> np.ndarray:
-    """Crease edges: the normals ``step`` pixels apart on either side differ by > ``max_deg``."""
+                 sigma: float, step: int = 2, concave_only: bool = True) -> np.ndarray:
+    """Crease edges: the normals ``step`` pixels apart on either side differ by > ``max_deg``.
+
+    With ``concave_only`` only concave creases count (where an object meets its support or
+    another object); convex creases (the edges of a box) lie inside one object. Convexity test
+    of two surface points x1, x2 with normals n1, n2: convex when (n1 - n2) . (x1 - x2) > 0.
+    """
     z = _fill_invalid(depth.astype(np.float32), valid)
-    n = depth_normals(z, K, sigma)
+    P = depth_points(z, K, sigma)
+    n = point_normals(P)
     cos_max = np.cos(np.deg2rad(max_deg))
     out = np.zeros(z.shape, dtype=bool)
-    for dy, dx in _shift_pairs(step)[:2]:
-        c = (_shifted(n, dy, dx) * _shifted(n, -dy, -dx)).sum(-1)
-        out |= c < cos_max
+    for dy, dx in _shift_pairs(step):
+        n1, n2 = _shifted(n, dy, dx), _shifted(n, -dy, -dx)
+        e = (n1 * n2).sum(-1) < cos_max
+        if concave_only:
+            x1, x2 = _shifted(P, dy, dx, True), _shifted(P, -dy, -dx, True)
+            e &= ((n1 - n2) * (x1 - x2)).sum(-1) <= 0
+        out |= e
     return out
 
 
@@ -128,8 +160,7 @@ def color_edges(rgb: np.ndarray, thresh: float, sigma: float) -> np.ndarray:
     """Chromaticity edges: bool [H, W] where the confidence-weighted gradient magnitude of
     the chromaticity (per pixel, Sobel) exceeds ``thresh``."""
     chrom, conf = chromaticity(rgb)
-    if sigma > 0:
-        chrom = cv2.GaussianBlur(chrom, (0, 0), sigma)
+    chrom = _blur(chrom, sigma)
     g = np.zeros(conf.shape, dtype=np.float32)
     for c in range(2):
         gx = cv2.Sobel(chrom[..., c], cv2.CV_32F, 1, 0, ksize=3) / 8.0
@@ -227,16 +258,26 @@ class GeometricSegmenter:
                     Ks[1] *= h / H
                 edges |= depth_edges(z_s, zv_s, o.depth_edge_rel, o.smooth_sigma)
                 edges |= crease_edges(z_s, zv_s, Ks, o.normal_edge_deg, o.smooth_sigma)
+                # where the surface bends (either way) shading changes the colour, and under a
+                # coloured light also the chromaticity: no colour edges there
+                shading = crease_edges(z_s, zv_s, Ks, o.normal_edge_deg / 2, o.smooth_sigma,
+                                       concave_only=False)
+                no_color = cv2.dilate(shading.astype(np.uint8), np.ones((3, 3), np.uint8)) > 0
                 feat = np.log(np.maximum(_fill_invalid(z_s, zv_s), 1e-6))[..., None]
         if o.color_edge > 0:
-            edges |= color_edges(rgb_s, o.color_edge, o.smooth_sigma)
+            ce = color_edges(rgb_s, o.color_edge, o.smooth_sigma)
+            if feat is not None:
+                ce &= ~no_color
+            edges |= ce
         if feat is None:
             chrom, _ = chromaticity(rgb_s)
             feat = chrom
         n, labels = cv2.connectedComponents((valid & ~edges).astype(np.uint8), connectivity=4)
-        min_area = max(1, int(round(o.min_region_area * s * s)))
+        # keep small cores (edge bands eat into small objects); the final area test is after
+        # the cores have grown back over the edge pixels
+        min_core = max(3, int(round(o.min_region_area * s * s / 8)))
         areas = np.bincount(labels.ravel(), minlength=n)
-        small_ids = np.flatnonzero(areas < min_area)
+        small_ids = np.flatnonzero(areas < min_core)
         labels[np.isin(labels, small_ids)] = 0
         labels = grow_into(labels.astype(np.int32), valid & (labels == 0),
                            feat.astype(np.float32))

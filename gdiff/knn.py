@@ -61,11 +61,13 @@ class NeighbourIndex:
         self._pts: np.ndarray | None = None
         self._calls = 0
 
-    def sample(self, means: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    def sample(self, means: torch.Tensor, rng: np.random.Generator | None = None
+               ) -> tuple[torch.Tensor, torch.Tensor]:
         """Return (sample [m'] int64, neighbours [m', k] int64), m' = min(m, N).
 
         ``means`` [N, 3] are the current Gaussian centres (gradients are not followed). The tree
-        is rebuilt on the first call, every ``refresh`` calls, and whenever N changes.
+        is rebuilt on the first call, every ``refresh`` calls, and whenever N changes. ``rng``
+        draws the sample (default: the index's own generator, seeded at construction).
         """
         n = means.shape[0]
         if n < 2:
@@ -75,10 +77,22 @@ class NeighbourIndex:
             self._tree = cKDTree(self._pts)
         self._calls += 1
         k = min(self.k, n - 1)
-        q = self.rng.choice(n, size=min(self.m, n), replace=False)
+        q = (rng or self.rng).choice(n, size=min(self.m, n), replace=False)
         nbr = knn_indices(self._pts, q, k, tree=self._tree)
         dev = means.device
         return torch.from_numpy(q).to(dev), torch.from_numpy(nbr).to(dev)
+
+    def state_dict(self) -> dict:
+        """The tree's points and the call counter (the tree is rebuilt from them on load), so a
+        resumed run samples exactly the neighbours an uninterrupted one would."""
+        pts = torch.from_numpy(self._pts.copy()) if self._pts is not None else torch.zeros(0, 3)
+        return {"points": pts, "calls": self._calls}
+
+    def load_state_dict(self, state: dict) -> None:
+        pts = state["points"].numpy()
+        self._calls = int(state["calls"])
+        self._pts = pts if len(pts) else None
+        self._tree = cKDTree(pts) if len(pts) else None
 
 
 def _to_numpy(x) -> np.ndarray:

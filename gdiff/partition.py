@@ -57,6 +57,7 @@ class PartitionOptions:
     geometry_lr_scale: float = 0.1    # fit-stage learning rates are multiplied by this
     lambda_tv: float | None = None    # TV weight; None = the fit stage's value
     threshold: float = 0.5            # probability above which a pixel / Gaussian is "changed"
+    max_side: int = 0                 # train at images downsized to this longest side (0 = full)
     checkpoint_every: int = 500       # write a resumable checkpoint every this many steps
     log_every: int = 50               # rows of train_log.csv
     seed: int = 0
@@ -74,6 +75,8 @@ class PartitionOptions:
             raise ValueError("threshold must lie in (0, 1)")
         if self.lambda_2d < 0 or self.lambda_3d < 0:
             raise ValueError("lambda_2d and lambda_3d must be >= 0")
+        if self.max_side < 0:
+            raise ValueError("max_side must be >= 0 (0 = full resolution)")
         if self.checkpoint_every < 1 or self.log_every < 1:
             raise ValueError("checkpoint_every and log_every must be >= 1")
 
@@ -179,3 +182,785 @@ def l3d_step(head: ChangeHead, means: torch.Tensor, index: NeighbourIndex) -> to
     (world units, detached for the look-up), return :func:`neighbour_kl`."""
     sample, nbr = index.sample(means)
     return neighbour_kl(head.gaussian_logits(), sample, nbr)
+
+
+# --------------------------------------------------------------------------------------------
+# rendering
+
+
+def render_features(g, encoding: torch.Tensor, camera, background: torch.Tensor | None = None,
+                    with_rgb: bool = True) -> dict[str, torch.Tensor]:
+    """Render colour and classification features of Gaussians ``g`` at one camera, in one pass.
+
+    Args:
+        g: :class:`gdiff.splat.gaussians.Gaussians` (activated, e.g. ``model.at_time(t)``).
+        encoding: [N, D] classification encodings (degree 0: the same in every direction).
+        camera: :class:`gdiff.cameras.Camera` (OpenCV axes, c2w, pixel centres at +0.5).
+        background: [3] colour blended behind the RGB channels (None = black). The features
+            get no background term: where nothing is hit ``F`` = 0.
+        with_rgb: also render the colour (SH evaluated from the camera centre).
+    Returns:
+        dict ``features`` [H, W, D], ``alpha`` [H, W] and, with ``with_rgb``, ``rgb`` [H, W, 3]
+        (sRGB-encoded values as fitted). Differentiable w.r.t. ``g`` and ``encoding``.
+    """
+    from .cameras import stack_for_render
+    from .splat.rasterize import rasterize
+    from .splat.sh import sh_to_color
+
+    dev = g.means.device
+    viewmats, Ks = stack_for_render([camera], device=dev, dtype=g.means.dtype)
+    feats = encoding
+    if with_rgb:
+        campos = torch.as_tensor(camera.center, dtype=g.means.dtype, device=dev)
+        rgb = sh_to_color(g.sh_degree, g.sh, g.means - campos)  # [N, 3]
+        feats = torch.cat([rgb, encoding], dim=-1)
+    render, alpha, _ = rasterize(g.means, g.quats, g.scales, g.opacities, feats, viewmats, Ks,
+                                 camera.width, camera.height)
+    render, alpha = render[0], alpha[0, ..., 0]
+    out = {"alpha": alpha}
+    if with_rgb:
+        rgb = render[..., :3]
+        if background is not None:
+            rgb = rgb + (1.0 - alpha)[..., None] * background.to(rgb)
+        out["rgb"] = rgb
+        out["features"] = render[..., 3:]
+    else:
+        out["features"] = render
+    return out
+
+
+# --------------------------------------------------------------------------------------------
+# the partition model: fitted 4D Gaussians + change head
+
+
+FORMAT = "gdiff.PartitionModel"
+VERSION = 1
+
+
+class PartitionModel(nn.Module):
+    """A fine-tuned 4D Gaussian model with per-Gaussian change encodings.
+
+    Attributes:
+        fit: :class:`gdiff.splat.model.GaussianModel4D`.
+        head: :class:`ChangeHead` with one encoding per Gaussian of ``fit``.
+        camera: default :class:`gdiff.cameras.Camera` (the training intrinsics; pose identity),
+            used by the CLI when no intrinsics are given.
+        background: [3] colour behind the rendered images (the fit stage's).
+        threshold: probability above which a pixel / Gaussian counts as changed.
+    """
+
+    def __init__(self, fit, head: ChangeHead, camera, background=None, threshold: float = 0.5):
+        super().__init__()
+        if head.n != len(fit):
+            raise ValueError(f"head has {head.n} encodings but the model {len(fit)} Gaussians")
+        self.fit = fit
+        self.head = head
+        self.camera = camera
+        bg = torch.zeros(3) if background is None else torch.as_tensor(background).float()
+        self.register_buffer("background", bg.reshape(3).clone())
+        self.threshold = float(threshold)
+
+    def render(self, camera, t: float, with_rgb: bool = False) -> dict[str, torch.Tensor]:
+        """Render at ``camera`` and time ``t``: dict ``logits`` [H, W, 2], ``prob`` [H, W]
+        (change probability), ``alpha`` [H, W] and, with ``with_rgb``, ``rgb`` [H, W, 3]."""
+        g = self.fit.at_time(float(t))
+        out = render_features(g, self.head.encoding, camera, self.background, with_rgb)
+        out["logits"] = self.head.classify(out.pop("features"))
+        out["prob"] = change_probability(out["logits"])
+        return out
+
+    def gaussian_probability(self) -> torch.Tensor:
+        """Per-Gaussian change probability [N] in [0, 1]."""
+        return self.head.gaussian_probability()
+
+
+@torch.no_grad()
+def render_change_map(pmodel: PartitionModel, camera, t: float | None = None,
+                      with_image: bool = False) -> dict[str, np.ndarray | None]:
+    """The change map of a viewpoint.
+
+    Args:
+        pmodel: from :func:`load_partition_model` or :func:`train_partition`.
+        camera: :class:`gdiff.cameras.Camera` (any pose and intrinsics).
+        t: time in [0, 1], or None for the union of t = 0 (what was there and changed) and
+            t = 1 (what is there and is new).
+        with_image: also return the rendered colour image(s).
+    Returns:
+        dict of numpy arrays: ``prob`` [H, W] float32 in [0, 1] (for t=None the per-pixel max of
+        the two times), ``mask`` [H, W] bool (``prob > pmodel.threshold``), ``prob_t0`` and
+        ``prob_t1`` (None when that time was not rendered) and, with ``with_image``,
+        ``image`` [H, W, 3] float32 sRGB (the render at ``t``; for t=None at t=0) plus
+        ``image_t0`` / ``image_t1``.
+    """
+    times = [0.0, 1.0] if t is None else [float(t)]
+    if not all(0.0 <= x <= 1.0 for x in times):
+        raise ValueError(f"t must lie in [0, 1], got {t}")
+    res = {}
+    for x in times:
+        r = pmodel.render(camera, x, with_rgb=with_image)
+        res[x] = {k: v.detach().float().cpu().numpy() for k, v in r.items()}
+    out: dict[str, np.ndarray | None] = {
+        "prob_t0": res[0.0]["prob"] if 0.0 in res else None,
+        "prob_t1": res[1.0]["prob"] if 1.0 in res else None,
+    }
+    if t is None:
+        out["prob"] = np.maximum(out["prob_t0"], out["prob_t1"])
+    else:
+        out["prob"] = res[times[0]]["prob"]
+    out["prob"] = out["prob"].astype(np.float32)
+    out["mask"] = out["prob"] > pmodel.threshold
+    if with_image:
+        out["image_t0"] = np.clip(res[0.0]["rgb"], 0, 1) if 0.0 in res else None
+        out["image_t1"] = np.clip(res[1.0]["rgb"], 0, 1) if 1.0 in res else None
+        out["image"] = np.clip(res[times[0]]["rgb"], 0, 1)
+    return out
+
+
+def _camera_to_dict(cam) -> dict:
+    return {k: getattr(cam, k) for k in ("width", "height", "fx", "fy", "cx", "cy")}
+
+
+def partition_blob(pmodel: PartitionModel, options: PartitionOptions | None = None) -> dict:
+    """Everything :func:`load_partition_model` needs, as a torch-saveable dict."""
+    import dataclasses
+
+    fit = pmodel.fit
+    return {"format": FORMAT, "version": VERSION,
+            "fit": {"config": fit.config(),
+                    "state_dict": {k: v.detach().cpu() for k, v in fit.state_dict().items()},
+                    "meta": getattr(fit, "meta", {})},
+            "head": {k: v.detach().cpu() for k, v in pmodel.head.state_dict().items()},
+            "camera": _camera_to_dict(pmodel.camera),
+            "background": pmodel.background.detach().cpu().tolist(),
+            "threshold": pmodel.threshold,
+            "options": dataclasses.asdict(options) if options is not None else {}}
+
+
+def save_partition_model(pmodel: PartitionModel, path, options: PartitionOptions | None = None
+                         ) -> None:
+    """Write the partition ``model.pt`` atomically (format ``gdiff.PartitionModel``)."""
+    from .io import atomic_path
+
+    with atomic_path(path) as tmp:
+        torch.save(partition_blob(pmodel, options), tmp)
+
+
+def load_partition_model(path, device="auto") -> PartitionModel:
+    """Load a partition ``model.pt`` onto ``device`` (``auto``/``cpu``/``cuda`` or a
+    ``torch.device``), in eval mode. Raises :class:`gdiff.errors.ModelFileError` naming the
+    file when it is missing or not a partition model."""
+    from pathlib import Path
+
+    from .cameras import Camera
+    from .device import resolve_device
+    from .errors import ModelFileError
+    from .splat.model import GaussianModel4D
+
+    path = Path(path)
+    if not path.is_file():
+        raise ModelFileError(f"{path}: partition model not found; run the partition stage "
+                             "(snakemake ... partition) first")
+    try:
+        blob = torch.load(path, map_location="cpu", weights_only=True)
+    except Exception as e:
+        raise ModelFileError(f"{path}: cannot be read ({e}); delete it and rerun the partition "
+                             "stage") from None
+    if not isinstance(blob, dict) or blob.get("format") != FORMAT:
+        hint = (" (this is a fit-stage model; pass results/<scene>/partition/model.pt)"
+                if isinstance(blob, dict) and blob.get("format") == "gdiff.GaussianModel4D"
+                else "")
+        raise ModelFileError(f"{path}: not a gdiff partition model{hint}")
+    if blob.get("version", 0) > VERSION:
+        raise ModelFileError(f"{path}: written by a newer gdiff (version {blob['version']}); "
+                             "update gdiff")
+    return _from_blob(blob, resolve_device(device), Camera, GaussianModel4D)
+
+
+def _from_blob(blob, device, Camera, GaussianModel4D) -> PartitionModel:
+    fit = GaussianModel4D.from_state(blob["fit"]["config"], blob["fit"]["state_dict"])
+    fit.meta = blob["fit"].get("meta", {})
+    enc = blob["head"]["encoding"]
+    head = ChangeHead(enc.shape[0], enc.shape[1])
+    head.load_state_dict(blob["head"])
+    cam = Camera(**blob["camera"])
+    pm = PartitionModel(fit, head, cam, blob.get("background"), blob.get("threshold", 0.5))
+    return pm.to(device).eval()
+
+
+# --------------------------------------------------------------------------------------------
+# training data: key poses with their images and target masks
+
+
+@dataclass
+class KeyView:
+    """One key pose used for training: a source photo and the compare stage's masks there.
+
+    ``camera`` is at training resolution; ``time`` the photo's time (0 before, 1 after);
+    ``image`` the photo; ``masks`` maps "t0", "t1", "union" to mask files (absolute paths);
+    the training target of the photo is ``masks[f"t{time}"]``.
+    """
+
+    name: str
+    camera: object
+    time: float
+    image: object
+    masks: dict
+
+    @property
+    def target(self):
+        return self.masks[f"t{int(round(self.time))}"]
+
+
+KEYFRAME_COLUMNS = ("path", "frame", "image", "set", "time", "mask_t0", "mask_t1", "mask_union")
+
+
+def read_key_views(keyframes_csv, cameras_json, scene_dir, max_side: int = 0) -> list[KeyView]:
+    """Join ``change/keyframes.csv`` with ``poses/cameras.json``.
+
+    Mask paths in the CSV are relative to ``results/<scene>/`` (the CSV's grandparent folder);
+    image paths are relative to ``scene_dir``. Cameras are scaled so that max(width, height)
+    <= ``max_side`` (0 = full size). Raises :class:`gdiff.errors.SceneError` naming the file and
+    row for missing columns, unknown images or missing files.
+    """
+    from pathlib import Path
+
+    import pandas as pd
+
+    from .cameras import load_cameras
+    from .errors import SceneError
+
+    keyframes_csv, scene_dir = Path(keyframes_csv), Path(scene_dir)
+    try:
+        df = pd.read_csv(keyframes_csv)
+    except FileNotFoundError:
+        raise SceneError(f"{keyframes_csv}: not found; run the compare stage first") from None
+    missing = [c for c in KEYFRAME_COLUMNS if c not in df.columns]
+    if missing:
+        raise SceneError(f"{keyframes_csv}: missing column(s) {', '.join(missing)}; rerun the "
+                         "compare stage")
+    if df.empty:
+        raise SceneError(f"{keyframes_csv}: no key poses; the compare stage found no key frames")
+    cams = {Path(c.image).as_posix(): c for c in load_cameras(cameras_json) if c.image}
+    root = keyframes_csv.parent.parent
+    views = []
+    for i, row in df.iterrows():
+        img = Path(str(row["image"])).as_posix()
+        cam = cams.get(img)
+        if cam is None:
+            raise SceneError(f"{keyframes_csv}: row {i}: image {img!r} has no camera in "
+                             f"{cameras_json}; rerun the poses stage (or the compare stage)")
+        t = float(row["time"])
+        if t not in (0.0, 1.0):
+            raise SceneError(f"{keyframes_csv}: row {i}: time must be 0 or 1, got {row['time']}")
+        masks = {k: root / str(row[f"mask_{k}"]) for k in ("t0", "t1", "union")}
+        for k, p in masks.items():
+            if not p.is_file():
+                raise SceneError(f"{keyframes_csv}: row {i}: mask_{k} file {p} not found; "
+                                 "rerun the compare stage")
+        if max_side and max(cam.width, cam.height) > max_side:
+            cam = cam.scaled(max_side / max(cam.width, cam.height))
+        views.append(KeyView(f"{row['path']}_{int(row['frame']):05d}", cam, t,
+                             scene_dir / img, masks))
+    return views
+
+
+def _load_image(path, camera) -> np.ndarray:
+    """Photo as float32 [H, W, 3] sRGB in [0, 1], resized (area) to the camera's size."""
+    import cv2
+
+    from .io import read_image
+
+    img = read_image(path)
+    if img.shape[:2] != (camera.height, camera.width):
+        img = cv2.resize(img, (camera.width, camera.height), interpolation=cv2.INTER_AREA)
+    return img
+
+
+def _load_mask(path, camera) -> np.ndarray:
+    """Mask as float32 [H, W] in [0, 1] at the camera's size (area resampling: soft edges)."""
+    import cv2
+
+    from .io import read_mask
+
+    m = read_mask(path).astype(np.float32)
+    if m.shape != (camera.height, camera.width):
+        m = cv2.resize(m, (camera.width, camera.height), interpolation=cv2.INTER_AREA)
+    return m
+
+
+# --------------------------------------------------------------------------------------------
+# training
+
+# Learning rates of the fitted parameters (3D Gaussian splatting / 4D-GS defaults), multiplied
+# by ``PartitionOptions.geometry_lr_scale`` while the partition fine-tunes the model.
+_SPLAT_LR = {"means": 1.6e-4, "scales": 5e-3, "quats": 1e-3, "opacities": 5e-2,
+             "sh0": 2.5e-3, "shN": 2.5e-3 / 20}
+_GRID_LR, _MLP_LR = 1.6e-3, 1.6e-4
+
+
+def _param_groups(pm: PartitionModel, opts: PartitionOptions, extent: float) -> list[dict]:
+    groups = [{"name": "encoding", "params": [pm.head.encoding], "lr": opts.lr_encoding},
+              {"name": "conv", "params": list(pm.head.conv.parameters()), "lr": opts.lr_head}]
+    s = opts.geometry_lr_scale
+    fit = pm.fit
+    if s <= 0:
+        fit.requires_grad_(False)
+        return groups
+    for name, p in fit.splats.items():
+        if name in _SPLAT_LR:
+            lr = _SPLAT_LR[name] * (extent if name == "means" else 1.0)
+            groups.append({"name": name, "params": [p], "lr": lr * s})
+        else:
+            p.requires_grad_(False)
+    if fit.deformation is not None:
+        groups.append({"name": "grid", "params": fit.deformation.grid_parameters(),
+                       "lr": _GRID_LR * extent * s})
+        groups.append({"name": "mlp", "params": fit.deformation.mlp_parameters(),
+                       "lr": _MLP_LR * extent * s})
+    return groups
+
+
+def _tv_loss(pm: PartitionModel) -> torch.Tensor:
+    """Total variation of the deformation's feature planes (0 for a static model)."""
+    d = pm.fit.deformation
+    if d is None or not pm.fit.deforming:
+        return pm.background.new_zeros(())
+    return d.regularizers()["plane_tv"]
+
+
+def _latest_checkpoint(ckdir):
+    from pathlib import Path
+
+    files = sorted(Path(ckdir).glob("ckpt_*.pt"))
+    return files[-1] if files else None
+
+
+def _save_checkpoint(ckdir, it, pm, opt, index, rows, opts) -> None:
+    from pathlib import Path
+
+    from .io import atomic_path
+
+    ckdir = Path(ckdir)
+    blob = {"iteration": it, "pmodel": partition_blob(pm, opts), "optimizer": opt.state_dict(),
+            "index": index.state_dict(), "log": rows}
+    with atomic_path(ckdir / f"ckpt_{it:06d}.pt") as tmp:
+        torch.save(blob, tmp)
+    for old in sorted(ckdir.glob("ckpt_*.pt"))[:-2]:  # keep the two newest
+        old.unlink(missing_ok=True)
+
+
+def _view_rng(seed: int, it: int, purpose: int) -> np.random.Generator:
+    """Per-iteration random generator: training is reproducible and resumes exactly."""
+    return np.random.default_rng([int(seed), int(it), int(purpose)])
+
+
+def fine_tune(pm: PartitionModel, data: list[dict], opts: PartitionOptions, ckdir=None,
+              extent: float = 1.0) -> list[dict]:
+    """Optimise ``pm`` on ``data``: L = L1 + lambda_tv L_TV + lambda_2d BCE + lambda_3d L3d.
+
+    Args:
+        pm: the model (modified in place; its device is used).
+        data: one dict per training photo: ``camera`` (Camera), ``time`` (0/1), ``image``
+            [H, W, 3] float tensor (sRGB), ``target`` [H, W] float tensor in [0, 1].
+        opts: options (iterations, weights, learning rates, kNN settings, checkpointing).
+        ckdir: checkpoint folder; training resumes from its newest checkpoint when present.
+        extent: scene extent (world units) scaling the position / deformation learning rates.
+    Returns:
+        the training log: one dict per ``log_every`` iterations (iteration, loss terms, seconds).
+    Raises:
+        gdiff.errors.TrainingError: the loss became NaN/inf (names iteration and checkpoint).
+    """
+    import time as _time
+    from pathlib import Path
+
+    from .errors import TrainingError
+    from .log import progress
+    from .splat.losses import l1
+
+    if not data:
+        raise ValueError("no training views")
+    lam_tv = 2e-4 if opts.lambda_tv is None else opts.lambda_tv
+    index = NeighbourIndex(opts.knn_k, opts.knn_samples, opts.knn_refresh, opts.seed)
+    start, rows = 0, []
+    ck = _latest_checkpoint(ckdir) if ckdir is not None else None
+    if ck is not None:
+        blob = torch.load(ck, map_location="cpu", weights_only=True)
+        if blob["iteration"] <= opts.iterations:
+            _load_state(pm, blob["pmodel"])
+            start, rows = int(blob["iteration"]), list(blob["log"])
+            index.load_state_dict(blob["index"])
+            log.info("resuming partition training from %s (iteration %d)", ck, start)
+        else:
+            ck = None
+    pm.train()
+    opt = torch.optim.Adam(_param_groups(pm, opts, extent), eps=1e-15)
+    if ck is not None:
+        opt.load_state_dict(blob["optimizer"])
+    last_ck = str(ck) if ck is not None else "none"
+    acc = {"l1": 0.0, "tv": 0.0, "bce": 0.0, "l3d": 0.0, "n3d": 0}
+    t0 = _time.perf_counter()
+    for it in progress(range(start, opts.iterations), desc="partition", initial=start,
+                       total=opts.iterations):
+        v = data[int(_view_rng(opts.seed, it, 0).integers(len(data)))]
+        g = pm.fit.at_time(float(v["time"]))
+        r = render_features(g, pm.head.encoding, v["camera"], pm.background, with_rgb=True)
+        loss_l1 = l1(r["rgb"], v["image"])
+        loss_tv = _tv_loss(pm)
+        loss_bce = mask_bce(pm.head.classify(r["features"]), v["target"])
+        loss = loss_l1 + lam_tv * loss_tv + opts.lambda_2d * loss_bce
+        if opts.lambda_3d > 0 and it % opts.l3d_every == 0:
+            s, nb = index.sample(g.means, rng=_view_rng(opts.seed, it, 1))
+            loss_3d = neighbour_kl(pm.head.gaussian_logits(), s, nb)
+            loss = loss + opts.lambda_3d * loss_3d
+            acc["l3d"] += float(loss_3d)
+            acc["n3d"] += 1
+        if not torch.isfinite(loss):
+            raise TrainingError(
+                f"partition training diverged: loss is {float(loss)} at iteration {it} "
+                f"(L1 {float(loss_l1):.4g}, BCE {float(loss_bce):.4g}); last checkpoint: "
+                f"{last_ck}. Lower partition.lr_encoding / lr_head / geometry_lr_scale and "
+                "rerun (training resumes from the checkpoint)")
+        opt.zero_grad(set_to_none=True)
+        loss.backward()
+        opt.step()
+        acc["l1"] += float(loss_l1)
+        acc["tv"] += float(loss_tv)
+        acc["bce"] += float(loss_bce)
+        done = it + 1
+        if done % opts.log_every == 0 or done == opts.iterations:
+            n = done - (rows[-1]["iteration"] if rows else 0)
+            rows.append({"iteration": done, "l1": acc["l1"] / n, "tv": acc["tv"] / n,
+                         "bce": acc["bce"] / n,
+                         "l3d": acc["l3d"] / acc["n3d"] if acc["n3d"] else float("nan"),
+                         "seconds": _time.perf_counter() - t0})
+            acc = {"l1": 0.0, "tv": 0.0, "bce": 0.0, "l3d": 0.0, "n3d": 0}
+        if ckdir is not None and (done % opts.checkpoint_every == 0 or done == opts.iterations):
+            _save_checkpoint(ckdir, done, pm, opt, index, rows, opts)
+            last_ck = str(Path(ckdir) / f"ckpt_{done:06d}.pt")
+    pm.eval()
+    return rows
+
+
+def _load_state(pm: PartitionModel, blob: dict) -> None:
+    """Copy fitted parameters, encodings and head from a :func:`partition_blob` into ``pm``."""
+    with torch.no_grad():
+        pm.fit.load_state_dict(blob["fit"]["state_dict"])
+        pm.head.load_state_dict(blob["head"])
+
+
+def train_partition(fit_model_path, cameras_json, keyframes_csv, scene_dir, out_dir,
+                    options: PartitionOptions | None = None, device="auto") -> dict:
+    """The ``partition`` stage: fine-tune the fitted 4D model with change encodings.
+
+    Args:
+        fit_model_path: ``results/<scene>/fit/model.pt``.
+        cameras_json: ``results/<scene>/poses/cameras.json`` (key images and eval views).
+        keyframes_csv: ``results/<scene>/change/keyframes.csv`` (targets, see
+            :func:`read_key_views`).
+        scene_dir: the scene folder (photos).
+        out_dir: ``results/<scene>/partition/``; receives ``model.pt``, ``changed.ply``,
+            ``unchanged.ply`` (+ per-time ``changed_t0/_t1``, ``unchanged_t0/_t1`` PLYs),
+            ``probability.npy`` (per-Gaussian change probability [N] float32),
+            ``maps/`` (change maps at every key pose, see :func:`write_key_maps`),
+            ``keypose_scores.csv``, ``train_log.csv``, ``summary.json``, ``ckpt/``.
+        options: :class:`PartitionOptions` (defaults when None).
+        device: ``auto``/``cpu``/``cuda``.
+    Returns:
+        summary dict (counts of Gaussians, mean key-pose IoU, seconds).
+    """
+    import time as _time
+    from pathlib import Path
+
+    import pandas as pd
+
+    from .device import resolve_device
+    from .io import write_csv, write_json
+    from .splat.gaussians import camera_extent
+    from .splat.model import load_model
+
+    opts = options or PartitionOptions()
+    dev = resolve_device(device)
+    out = Path(out_dir)
+    t_start = _time.perf_counter()
+    torch.manual_seed(opts.seed)
+    fit = load_model(fit_model_path, dev)
+    views = read_key_views(keyframes_csv, cameras_json, scene_dir, opts.max_side)
+    data = [{"camera": v.camera, "time": v.time,
+             "image": torch.from_numpy(_load_image(v.image, v.camera)).to(dev),
+             "target": torch.from_numpy(_load_mask(v.target, v.camera)).to(dev)} for v in views]
+    head = ChangeHead(len(fit), opts.encoding_dim, opts.seed)
+    bg = fit.meta.get("background") if isinstance(getattr(fit, "meta", None), dict) else None
+    pm = PartitionModel(fit, head, views[0].camera.with_pose(np.eye(4)), bg,
+                        opts.threshold).to(dev)
+    extent = float(fit.meta.get("extent") or camera_extent(
+        np.stack([v.camera.center for v in views])))
+    log.info("partition: %d Gaussians, %d key views, %d iterations on %s", len(fit), len(views),
+             opts.iterations, dev)
+    rows = fine_tune(pm, data, opts, out / "ckpt", extent)
+    t_train = _time.perf_counter() - t_start
+    save_partition_model(pm, out / "model.pt", opts)
+    write_csv(out / "train_log.csv", pd.DataFrame(rows))
+    prob = pm.gaussian_probability().detach().cpu().numpy().astype(np.float32)
+    from .io import atomic_path
+
+    with atomic_path(out / "probability.npy") as tmp:
+        np.save(tmp, prob)
+    counts = write_split_ply(pm, out, opts.threshold)
+    scores = write_key_maps(pm, views, out / "maps")
+    write_csv(out / "keypose_scores.csv", scores)
+    summary = {"gaussians": len(fit), **counts, "key_views": len(views),
+               "iterations": opts.iterations,
+               "keypose_iou_own_time": float(np.nanmean(scores["iou_own_time"])),
+               "keypose_iou_union": float(np.nanmean(scores["iou_union"])),
+               "seconds_train": t_train, "seconds_total": _time.perf_counter() - t_start}
+    write_json(out / "summary.json", summary)
+    log.info("partition done: %s", summary)
+    return summary
+
+
+# --------------------------------------------------------------------------------------------
+# outputs
+
+
+MIN_VISIBLE_OPACITY = 0.005  # a Gaussian below this opacity at time t is absent at t
+
+
+@torch.no_grad()
+def split_gaussians(pm: PartitionModel, t: float, threshold: float = 0.5):
+    """Changed and unchanged Gaussians at time ``t`` (activated, deformed to ``t``).
+
+    A Gaussian is changed when its probability ``softmax(Conv(e))[changed]`` exceeds
+    ``threshold``; Gaussians whose opacity at ``t`` is below ``MIN_VISIBLE_OPACITY`` are absent
+    at ``t`` (e.g. a removed object's Gaussians after the change) and left out.
+    Returns (changed, unchanged) :class:`gdiff.splat.gaussians.Gaussians`.
+    """
+    g = pm.fit.at_time(float(t)).detach()
+    p = pm.gaussian_probability()
+    present = g.opacities >= MIN_VISIBLE_OPACITY
+    return g.subset((p > threshold) & present), g.subset((p <= threshold) & present)
+
+
+def write_split_ply(pm: PartitionModel, out_dir, threshold: float = 0.5) -> dict:
+    """Write ``changed_t0/_t1.ply``, ``unchanged_t0/_t1.ply`` (3DGS layout) and
+    ``changed.ply`` (the changed Gaussians present at t=0 followed by those present at t=1:
+    what was there and changed plus what is new), ``unchanged.ply`` (= ``unchanged_t0``).
+    Returns the Gaussian counts per file."""
+    from pathlib import Path
+
+    from .splat.gaussians import Gaussians
+    from .splat.ply import write_gaussians
+
+    out = Path(out_dir)
+    parts, counts = {}, {}
+    for t in (0, 1):
+        parts[f"changed_t{t}"], parts[f"unchanged_t{t}"] = split_gaussians(pm, t, threshold)
+    c0, c1 = parts["changed_t0"], parts["changed_t1"]
+    parts["changed"] = Gaussians(*(torch.cat([getattr(c0, k), getattr(c1, k)])
+                                   for k in ("means", "quats", "scales", "opacities", "sh")),
+                                 sh_degree=c0.sh_degree)
+    parts["unchanged"] = parts["unchanged_t0"]
+    for name, g in parts.items():
+        write_gaussians(out / f"{name}.ply", g)
+        counts[f"n_{name}"] = len(g)
+    return counts
+
+
+def overlay(image: np.ndarray, mask: np.ndarray, colour=(1.0, 0.15, 0.1), alpha: float = 0.5,
+            outline: np.ndarray | None = None) -> np.ndarray:
+    """The image [H, W, 3] (float sRGB) with ``mask`` [H, W] tinted in ``colour`` and its
+    outline drawn; ``outline`` (optional bool [H, W], e.g. a target mask) is drawn in green."""
+    import cv2
+
+    img = np.clip(np.asarray(image, np.float32), 0, 1).copy()
+    m = np.asarray(mask, bool)
+    img[m] = (1 - alpha) * img[m] + alpha * np.asarray(colour, np.float32)
+    for mm, col in ((m, colour), (outline, (0.1, 1.0, 0.2))):
+        if mm is None:
+            continue
+        cs, _ = cv2.findContours(np.asarray(mm, np.uint8), cv2.RETR_EXTERNAL,
+                                 cv2.CHAIN_APPROX_NONE)
+        cv2.drawContours(img, cs, -1, tuple(float(c) for c in col), 1)
+    return img
+
+
+def write_key_maps(pm: PartitionModel, views: list[KeyView], maps_dir):
+    """Render change maps at every key pose and score them against the compare-stage masks.
+
+    Writes, per key view ``<name>`` (``<path>_<frame>``): ``maps/{t0,t1,union}/<name>.png``
+    (binary masks, 255 = changed), ``maps/{t0,t1,union}_prob/<name>.png`` (probability x 255)
+    and ``maps/overlay/<name>.png`` (the photo with the union map in red and the compare
+    stage's union mask outlined in green). Returns a DataFrame with one row per view: name,
+    time, IoU of the map at the photo's time vs its target (``iou_own_time``) and of the union
+    map vs ``mask_union`` (``iou_union``), plus pixel F1 of the union.
+    """
+    from pathlib import Path
+
+    import pandas as pd
+
+    from .io import write_image, write_mask
+    from .log import progress
+    from .metrics import pixel_scores
+
+    maps_dir = Path(maps_dir)
+    rows = []
+    for v in progress(views, desc="partition maps"):
+        r = render_change_map(pm, v.camera, None)
+        th = pm.threshold
+        for key, p in (("t0", r["prob_t0"]), ("t1", r["prob_t1"]), ("union", r["prob"])):
+            write_mask(maps_dir / key / f"{v.name}.png", p > th)
+            write_image(maps_dir / f"{key}_prob" / f"{v.name}.png",
+                        np.repeat(p[..., None], 3, axis=2))
+        own = _load_mask(v.target, v.camera) > 0.5
+        union_t = _load_mask(v.masks["union"], v.camera) > 0.5
+        photo = _load_image(v.image, v.camera)
+        write_image(maps_dir / "overlay" / f"{v.name}.png",
+                    overlay(photo, r["mask"], outline=union_t))
+        own_pred = r[f"prob_t{int(v.time)}"] > th
+        s_own, s_union = pixel_scores(own_pred, own), pixel_scores(r["mask"], union_t)
+        rows.append({"name": v.name, "image": str(v.image), "time": v.time,
+                     "iou_own_time": s_own["IoU"], "iou_union": s_union["IoU"],
+                     "f1_union": s_union["F1"]})
+    return pd.DataFrame(rows)
+
+
+# --------------------------------------------------------------------------------------------
+# command line: gdiff change-map
+
+
+def _read_c2w(path) -> np.ndarray:
+    """A 4x4 (or 3x4) camera-to-world matrix from .npy, .json (a matrix, or an object with
+    ``c2w`` / ``transform_matrix``) or a text file of 12/16 numbers."""
+    import json
+    from pathlib import Path
+
+    from .errors import GdiffError
+
+    path = Path(path)
+    try:
+        if path.suffix == ".npy":
+            a = np.load(path)
+        elif path.suffix == ".json":
+            d = json.loads(path.read_text())
+            a = d.get("c2w", d.get("transform_matrix")) if isinstance(d, dict) else d
+            a = np.asarray(a, dtype=np.float64)
+        else:
+            a = np.loadtxt(path, dtype=np.float64)
+    except (OSError, ValueError, TypeError) as e:
+        raise GdiffError(f"{path}: cannot read a camera-to-world matrix ({e}); give a .npy, "
+                         ".json or text file with a 4x4 matrix") from None
+    return _as_c2w(np.asarray(a, dtype=np.float64), str(path))
+
+
+def _as_c2w(a: np.ndarray, source: str) -> np.ndarray:
+    from .errors import GdiffError
+
+    a = a.reshape(-1)
+    if a.size not in (12, 16) or not np.isfinite(a).all():
+        raise GdiffError(f"{source}: expected 12 or 16 finite numbers (a 3x4 or 4x4 "
+                         f"camera-to-world matrix, row-major), got {a.size}")
+    m = a.reshape(-1, 4)
+    return np.vstack([m, [0, 0, 0, 1]]) if len(m) == 3 else m
+
+
+def pose_from_values(values: list[float]) -> np.ndarray:
+    """c2w [4, 4] from 7 numbers ``x y z qw qx qy qz`` (camera centre in world units and the
+    camera-to-world rotation as a wxyz quaternion, OpenCV camera axes) or 12/16 numbers (a
+    row-major 3x4/4x4 c2w matrix)."""
+    from scipy.spatial.transform import Rotation
+
+    from .errors import GdiffError
+
+    v = np.asarray(values, dtype=np.float64)
+    if v.size == 7:
+        q = v[3:]
+        if not np.isfinite(v).all() or np.linalg.norm(q) < 1e-12:
+            raise GdiffError("--pose: the quaternion qw qx qy qz must be finite and non-zero")
+        c2w = np.eye(4)
+        c2w[:3, :3] = Rotation.from_quat(q, scalar_first=True).as_matrix()
+        c2w[:3, 3] = v[:3]
+        return c2w
+    return _as_c2w(v, "--pose")
+
+
+def change_map_main(argv=None) -> int:
+    """``gdiff change-map``: render a change map from a partition model at any camera pose."""
+    import argparse
+
+    from .cameras import Camera, load_cameras
+    from .errors import GdiffError
+    from .io import write_image, write_mask
+
+    p = argparse.ArgumentParser(
+        prog="gdiff change-map", description=change_map_main.__doc__,
+        epilog="Camera axes are OpenCV (x right, y down, z forward); c2w is camera-to-world. "
+               "Without intrinsics options the model's training intrinsics are used.")
+    p.add_argument("--model", required=True, help="results/<scene>/partition/model.pt")
+    src = p.add_mutually_exclusive_group(required=True)
+    src.add_argument("--c2w", metavar="FILE",
+                     help="4x4 camera-to-world matrix (.npy, .json or text)")
+    src.add_argument("--pose", nargs="+", type=float, metavar="V",
+                     help="x y z qw qx qy qz (centre + c2w rotation), or 12/16 matrix numbers")
+    src.add_argument("--cameras", metavar="JSON",
+                     help="a cameras.json; with --frame, render that frame's camera")
+    p.add_argument("--frame", default="0",
+                   help="with --cameras: frame index or image path (default 0)")
+    p.add_argument("--t", type=float, default=None,
+                   help="time: 0 (before) or 1 (after); omitted = union of t=0 and t=1")
+    p.add_argument("--out", required=True, help="binary change mask PNG (255 = changed)")
+    p.add_argument("--prob-out", help="also write the change probability (PNG x255, or .npy)")
+    p.add_argument("--image-out", help="also write the rendered image (PNG)")
+    p.add_argument("--overlay-out", help="also write the image with the mask overlaid (PNG)")
+    for k in ("width", "height"):
+        p.add_argument(f"--{k}", type=int, help=f"image {k} (px)")
+    for k in ("fx", "fy", "cx", "cy"):
+        p.add_argument(f"--{k}", type=float, help=f"intrinsic {k} (px, pixel centres at +0.5)")
+    p.add_argument("--device", default="auto", help="auto, cpu or cuda")
+    args = p.parse_args(argv)
+
+    pm = load_partition_model(args.model, args.device)
+    cam = pm.camera
+    if args.cameras:
+        cams = load_cameras(args.cameras)
+        sel = [c for c in cams if c.image == args.frame]
+        if not sel:
+            try:
+                sel = [cams[int(args.frame)]]
+            except (ValueError, IndexError):
+                raise GdiffError(f"{args.cameras}: no frame {args.frame!r} (give an index "
+                                 f"0..{len(cams) - 1} or an image path)") from None
+        cam = sel[0]
+    else:
+        c2w = _read_c2w(args.c2w) if args.c2w else pose_from_values(args.pose)
+        cam = cam.with_pose(c2w)
+    if args.width or args.height:
+        if not (args.width and args.height):
+            raise GdiffError("--width and --height go together")
+        s = args.width / cam.width
+        cam = Camera(args.width, args.height, cam.fx * s, cam.fy * args.height / cam.height,
+                     cam.cx * s, cam.cy * args.height / cam.height, cam.c2w)
+    over = {k: getattr(args, k) for k in ("fx", "fy", "cx", "cy") if getattr(args, k)}
+    if over:
+        cam = Camera(cam.width, cam.height, **{**{k: getattr(cam, k) for k in
+                                                   ("fx", "fy", "cx", "cy")}, **over},
+                     c2w=cam.c2w)
+    if args.t is not None and not 0.0 <= args.t <= 1.0:
+        raise GdiffError(f"--t must lie in [0, 1] (0 = before, 1 = after), got {args.t}")
+    want_img = bool(args.image_out or args.overlay_out)
+    r = render_change_map(pm, cam, args.t, with_image=want_img)
+    write_mask(args.out, r["mask"])
+    if args.prob_out:
+        if args.prob_out.endswith(".npy"):
+            from .io import atomic_path
+
+            with atomic_path(args.prob_out) as tmp:
+                np.save(tmp, r["prob"])
+        else:
+            write_image(args.prob_out, np.repeat(r["prob"][..., None], 3, axis=2))
+    if args.image_out:
+        write_image(args.image_out, r["image"])
+    if args.overlay_out:
+        write_image(args.overlay_out, overlay(r["image"], r["mask"]))
+    frac = float(r["mask"].mean())
+    print(f"{args.out}: {cam.width}x{cam.height}, t={'union' if args.t is None else args.t}, "
+          f"{100 * frac:.2f}% changed")
+    return 0

@@ -1,0 +1,329 @@
+"""Instance tracking with one shared ID space, in the spirit of DEVA's decoupled design.
+
+Segmentation is done per frame (any :class:`gdiff.segment.Segmenter`); this module only
+associates. For every frame in chain order:
+
+1. *Propagate*: the ID map of the previous frame (and, for tracks missed there, of the frame
+   they were last seen in) is carried to the current frame. With rendered depth and known
+   cameras this is a reprojection: each current pixel is back-projected with the current depth,
+   projected into the source camera and given the source ID when the source depth agrees
+   (``depth_tol_rel``), so occluded/disoccluded and changed surfaces get no ID. Without depth,
+   OpenCV DIS optical flow (current -> source) with a forward-backward check is used; between
+   two frames of the same pose (``pose_key``) without depth, the identity map is used.
+2. *Same-pose link* (``link_same_pose``): when the frame of the same pose at the other time has
+   already been tracked, its ID map is a second source. This is what makes the t0/t1 comparison
+   work at every pose, not only at the join of the chain.
+3. *Merge*: predicted masks and current segments are paired by mask IoU with the Hungarian
+   algorithm (gate ``iou_gate``); unmatched segments start new tracks (IDs are never reused);
+   tracks unseen for more than ``max_missed`` frames are dropped (they may still be re-found by
+   the same-pose link, which is re-identification of the same object).
+4. *Vote* (``vote_window``): tracks seen in fewer than half of the first ``vote_window`` frames
+   after their birth are flicker; their pixels are set to 0 (no instance).
+
+Chain order (see :func:`chain_order`): path p1 at t0 forward, then p1 at t1 backward (the join
+is the same pose at the other time), then p2 at t1 forward and p2 at t0 backward.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from dataclasses import dataclass, field
+from typing import Hashable
+
+import cv2
+import numpy as np
+import pandas as pd
+from scipy.optimize import linear_sum_assignment
+
+from .cameras import Camera
+from .errors import ConfigError
+from .log import progress
+
+log = logging.getLogger("gdiff.track")
+
+WARP_MODES = ("auto", "reproject", "flow")
+
+
+@dataclass
+class TrackOptions:
+    """Options of the ``track`` config section.
+
+    warp: how IDs are carried between frames: ``reproject`` (rendered depth + cameras),
+        ``flow`` (OpenCV DIS optical flow), ``auto`` (reproject when depth and cameras exist).
+    iou_gate: minimum mask IoU between a propagated track and a segment to continue the track.
+    max_missed: a track unseen in more than this many consecutive frames is dropped.
+    depth_tol_rel: reprojection visibility test: |z_projected - z_source| / z_source must be
+        below this for a pixel to inherit an ID.
+    link_same_pose: also propagate from the frame of the same pose at the other time.
+    vote_window: tracks seen in fewer than ceil(vote_window / 2) of their first vote_window
+        frames are removed (0 disables voting).
+    flow_fb_tol: optical-flow forward-backward consistency tolerance, pixels.
+    """
+
+    warp: str = "auto"
+    iou_gate: float = 0.5
+    max_missed: int = 5
+    depth_tol_rel: float = 0.05
+    link_same_pose: bool = True
+    vote_window: int = 5
+    flow_fb_tol: float = 1.5
+
+    def __post_init__(self):
+        if self.warp not in WARP_MODES:
+            raise ConfigError(f"config key 'track.warp': unknown value {self.warp!r}; use one of "
+                              f"{', '.join(WARP_MODES)}")
+        if not 0.0 < self.iou_gate <= 1.0:
+            raise ConfigError("config key 'track.iou_gate' must lie in (0, 1]")
+        if self.max_missed < 0 or self.vote_window < 0:
+            raise ConfigError("config keys 'track.max_missed' and 'track.vote_window' must be >= 0")
+
+
+@dataclass
+class TrackFrame:
+    """One frame to track.
+
+    labels: int [H, W] segment labels of this frame, 0 = no segment (non-overlapping masks).
+    rgb: float32 [H, W, 3] sRGB in [0, 1] (used for optical flow).
+    depth: float32 [H, W] z-depth (scene units) or None.
+    camera: the frame's :class:`Camera` (OpenCV axes) or None.
+    pose_key: hashable naming the pose (e.g. ("p1", 7)); frames of the same pose at the two
+        times share it. None = no same-pose partner.
+    name: free label for logs and tables (e.g. ("p1", "t0", 7)).
+    """
+
+    labels: np.ndarray
+    rgb: np.ndarray | None = None
+    depth: np.ndarray | None = None
+    camera: Camera | None = None
+    pose_key: Hashable | None = None
+    name: Hashable | None = None
+
+
+@dataclass
+class TrackResult:
+    """ids: one int32 [H, W] ID map per input frame (0 = no instance), in input order.
+    tracks: DataFrame with columns id, first, last (chain indices), n_frames, mean_area."""
+
+    ids: list[np.ndarray]
+    tracks: pd.DataFrame = field(default_factory=pd.DataFrame)
+
+
+def labels_from_instances(instances, shape: tuple[int, int]) -> np.ndarray:
+    """Paint instances (list of :class:`gdiff.segment.Instance`) into int32 labels [H, W].
+
+    Labels are 1..n in list order; where masks overlap the earlier (higher-score) one wins.
+    """
+    labels = np.zeros(shape, np.int32)
+    for i, inst in enumerate(instances, start=1):
+        labels[inst.mask & (labels == 0)] = i
+    return labels
+
+
+def chain_order(n_frames: dict[str, int], paths=("p1", "p2")) -> list[tuple[str, str, int]]:
+    """Chain (path, time, frame) carrying IDs from t0 to t1 at the same pose.
+
+    p1: t0 forward, t1 backward; p2: t1 forward, t0 backward (each path joins the other time at
+    the same pose; consecutive paths join through reprojection between their end poses).
+    ``n_frames``: frames per path.
+    """
+    order = []
+    for k, p in enumerate(paths):
+        if p not in n_frames:
+            continue
+        n = n_frames[p]
+        first, second = ("t0", "t1") if k % 2 == 0 else ("t1", "t0")
+        order += [(p, first, i) for i in range(n)]
+        order += [(p, second, i) for i in reversed(range(n))]
+    return order
+
+
+def _same_pose(a: TrackFrame, b: TrackFrame) -> bool:
+    if a.pose_key is not None and a.pose_key == b.pose_key:
+        return True
+    if a.camera is not None and b.camera is not None:
+        return bool(np.allclose(a.camera.c2w, b.camera.c2w, atol=1e-9))
+    return False
+
+
+def reproject_ids(ids_src: np.ndarray, src: TrackFrame, dst: TrackFrame,
+                  depth_tol_rel: float) -> np.ndarray:
+    """Carry ``ids_src`` [Hs, Ws] of ``src`` onto the pixel grid of ``dst`` by reprojection.
+
+    Each dst pixel centre (i+0.5, j+0.5) is back-projected with dst depth, transformed to the src
+    camera (OpenCV axes) and looked up at the nearest src pixel; it inherits the ID only if the
+    src depth there agrees within ``depth_tol_rel`` (visibility / no change). Returns int32
+    [Hd, Wd], 0 where no ID is carried.
+    """
+    cd, cs = dst.camera, src.camera
+    z = dst.depth.astype(np.float64)
+    H, W = z.shape
+    jj, ii = np.mgrid[0:H, 0:W]
+    x = (ii + 0.5 - cd.cx) / cd.fx * z
+    y = (jj + 0.5 - cd.cy) / cd.fy * z
+    P = np.stack([x, y, z, np.ones_like(z)], -1).reshape(-1, 4)
+    T = cs.w2c @ cd.c2w  # dst camera -> src camera
+    Q = P @ T.T
+    zs = Q[:, 2]
+    ok = np.isfinite(z.ravel()) & (z.ravel() > 0) & (zs > 1e-9)
+    u = np.where(ok, cs.fx * Q[:, 0] / np.where(ok, zs, 1) + cs.cx, -1)
+    v = np.where(ok, cs.fy * Q[:, 1] / np.where(ok, zs, 1) + cs.cy, -1)
+    Hs, Ws = ids_src.shape
+    ui = np.floor(u).astype(np.int64)
+    vi = np.floor(v).astype(np.int64)
+    ok &= (ui >= 0) & (ui < Ws) & (vi >= 0) & (vi < Hs)
+    out = np.zeros(H * W, np.int32)
+    idx = np.flatnonzero(ok)
+    zsrc = src.depth[vi[idx], ui[idx]].astype(np.float64)
+    agree = np.abs(zs[idx] - zsrc) <= depth_tol_rel * np.maximum(zsrc, 1e-9)
+    idx = idx[agree]
+    out[idx] = ids_src[vi[idx], ui[idx]]
+    return out.reshape(H, W)
+
+
+_DIS = None
+
+
+def _flow(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Dense optical flow [H, W, 2] (pixels) with a(x) ~ b(x + flow); a, b float RGB [H, W, 3]."""
+    global _DIS
+    if _DIS is None:
+        _DIS = cv2.DISOpticalFlow_create(cv2.DISOPTICAL_FLOW_PRESET_MEDIUM)
+    ga = cv2.cvtColor((np.clip(a, 0, 1) * 255).astype(np.uint8), cv2.COLOR_RGB2GRAY)
+    gb = cv2.cvtColor((np.clip(b, 0, 1) * 255).astype(np.uint8), cv2.COLOR_RGB2GRAY)
+    return _DIS.calc(ga, gb, None)
+
+
+def flow_ids(ids_src: np.ndarray, src: TrackFrame, dst: TrackFrame, fb_tol: float) -> np.ndarray:
+    """Carry ``ids_src`` onto ``dst`` with optical flow dst -> src and a forward-backward check.
+
+    Returns int32 [H, W], 0 where the flow is inconsistent (occlusion) or leaves the image.
+    """
+    H, W = ids_src.shape
+    f_ds = _flow(dst.rgb, src.rgb)
+    f_sd = _flow(src.rgb, dst.rgb)
+    jj, ii = np.mgrid[0:H, 0:W].astype(np.float32)
+    mx, my = ii + f_ds[..., 0], jj + f_ds[..., 1]
+    back = cv2.remap(f_sd, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT,
+                     borderValue=(1e6, 1e6))
+    err = np.hypot(f_ds[..., 0] + back[..., 0], f_ds[..., 1] + back[..., 1])
+    out = cv2.remap(ids_src.astype(np.float32), mx, my, cv2.INTER_NEAREST,
+                    borderMode=cv2.BORDER_CONSTANT, borderValue=0).astype(np.int32)
+    out[err > fb_tol] = 0
+    return out
+
+
+def propagate(ids_src: np.ndarray, src: TrackFrame, dst: TrackFrame, o: TrackOptions) -> np.ndarray:
+    """Predicted ID map int32 [H, W] of ``dst`` from the ID map of ``src`` (see module doc)."""
+    can_reproject = (src.depth is not None and dst.depth is not None
+                     and src.camera is not None and dst.camera is not None)
+    if o.warp == "reproject" and not can_reproject:
+        raise ConfigError("track.warp is 'reproject' but frames lack depth or cameras; "
+                          "use warp: auto or flow")
+    if o.warp in ("auto", "reproject") and can_reproject:
+        return reproject_ids(ids_src, src, dst, o.depth_tol_rel)
+    if _same_pose(src, dst) or src.rgb is None or dst.rgb is None:
+        if ids_src.shape != dst.labels.shape:
+            raise ValueError("frames of the same pose must have the same size")
+        return ids_src.astype(np.int32)
+    return flow_ids(ids_src, src, dst, o.flow_fb_tol)
+
+
+def _iou_table(pred: np.ndarray, labels: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """IoU between every predicted track mask and every segment.
+
+    Returns (track_ids [T], segment labels [S], iou [T, S]).
+    """
+    tids, pinv = np.unique(pred.ravel(), return_inverse=True)
+    sids, sinv = np.unique(labels.ravel(), return_inverse=True)
+    inter = np.zeros((len(tids), len(sids)), np.int64)
+    np.add.at(inter, (pinv, sinv), 1)
+    pa = inter.sum(1)
+    sa = inter.sum(0)
+    iou = inter / np.maximum(pa[:, None] + sa[None, :] - inter, 1)
+    tmask, smask = tids != 0, sids != 0
+    return tids[tmask], sids[smask], iou[np.ix_(tmask, smask)]
+
+
+def track_sequence(frames: list[TrackFrame], options: TrackOptions | None = None,
+                   first_id: int = 1) -> TrackResult:
+    """Track ``frames`` (in chain order) and return one shared-ID map per frame.
+
+    See the module docstring for the algorithm. ``first_id`` is the first new ID handed out.
+    """
+    o = options or TrackOptions()
+    out: list[np.ndarray] = []
+    next_id = first_id
+    last_seen: dict[int, int] = {}  # track id -> chain index of its last observation
+    seen_at: dict[int, list[int]] = {}  # track id -> chain indices where observed
+    areas: dict[int, int] = {}
+    done_by_pose: dict[Hashable, int] = {}
+    for k, fr in enumerate(progress(frames, desc="track", total=len(frames))):
+        labels = np.asarray(fr.labels)
+        sources: list[tuple[int, np.ndarray]] = []
+        if k > 0:
+            sources.append((k - 1, out[k - 1]))
+            # tracks alive but missed in the previous frame: propagate from where last seen
+            alive_missed = [t for t, f in last_seen.items()
+                            if f < k - 1 and k - 1 - f <= o.max_missed]
+            for f in sorted({last_seen[t] for t in alive_missed}):
+                keep = [t for t in alive_missed if last_seen[t] == f]
+                sources.append((f, np.where(np.isin(out[f], keep), out[f], 0)))
+        if o.link_same_pose and fr.pose_key is not None and fr.pose_key in done_by_pose:
+            f = done_by_pose[fr.pose_key]
+            if f != k - 1:
+                sources.append((f, out[f]))
+        best: dict[tuple[int, int], float] = {}
+        for f, ids_src in sources:
+            pred = propagate(ids_src, frames[f], fr, o)
+            tids, sids, iou = _iou_table(pred, labels)
+            for a, t in enumerate(tids):
+                for b, s in enumerate(sids):
+                    if iou[a, b] > 0:
+                        key = (int(t), int(s))
+                        best[key] = max(best.get(key, 0.0), float(iou[a, b]))
+        seg_ids = [int(s) for s in np.unique(labels) if s != 0]
+        assign: dict[int, int] = {}
+        if best and seg_ids:
+            trk = sorted({t for t, _ in best})
+            ti = {t: i for i, t in enumerate(trk)}
+            si = {s: j for j, s in enumerate(seg_ids)}
+            M = np.zeros((len(trk), len(seg_ids)))
+            for (t, s), v in best.items():
+                if s in si:
+                    M[ti[t], si[s]] = v
+            rows, cols = linear_sum_assignment(-M)
+            for r, c in zip(rows, cols):
+                if M[r, c] >= o.iou_gate:
+                    assign[seg_ids[c]] = trk[r]
+        lut = np.zeros(int(labels.max(initial=0)) + 1, np.int32)
+        for s in seg_ids:
+            if s not in assign:
+                assign[s] = next_id
+                next_id += 1
+            lut[s] = assign[s]
+        ids = lut[labels]
+        out.append(ids)
+        for s, t in assign.items():
+            last_seen[t] = k
+            seen_at.setdefault(t, []).append(k)
+            areas[t] = areas.get(t, 0) + int((labels == s).sum())
+        if fr.pose_key is not None:
+            done_by_pose[fr.pose_key] = k
+    n = len(frames)
+    removed = set()
+    if o.vote_window > 0:
+        for t, ks in seen_at.items():
+            window = min(o.vote_window, n - ks[0])
+            need = math.ceil(window / 2)
+            if sum(1 for x in ks if x < ks[0] + o.vote_window) < need:
+                removed.add(t)
+        if removed:
+            rm = np.array(sorted(removed))
+            out = [np.where(np.isin(m, rm), 0, m).astype(np.int32) for m in out]
+    rows = [dict(id=t, first=ks[0], last=ks[-1], n_frames=len(ks),
+                 mean_area=areas[t] / len(ks)) for t, ks in sorted(seen_at.items())
+            if t not in removed]
+    log.info("tracked %d frames: %d tracks (%d removed by voting)", n, len(rows), len(removed))
+    return TrackResult(ids=out, tracks=pd.DataFrame(
+        rows, columns=["id", "first", "last", "n_frames", "mean_area"]))

@@ -1,0 +1,119 @@
+"""Compiled CPU rasterization kernel (C++ torch extension), built on first use.
+
+:func:`load` compiles ``rasterize_cpu.cpp`` with the machine's C++ compiler through
+``torch.utils.cpp_extension.load`` into torch's extension cache (``TORCH_EXTENSIONS_DIR``,
+default ``~/.cache/torch_extensions``); later processes reuse the build. If compilation fails,
+``load(required=False)`` logs one warning and returns None, and the rasterizer falls back to
+the torch backend. Set ``GDIFF_NO_CPP=1`` to skip the kernel altogether.
+
+:func:`rasterize_cpp` has the same contract as
+:func:`gdiff.splat.rasterize.rasterize_torch` (it is tested against it) and a hand-written
+backward pass.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import platform
+import threading
+from pathlib import Path
+
+import torch
+
+from ...errors import GdiffError
+
+log = logging.getLogger("gdiff.splat.csrc")
+
+TILE_SIZE = 16
+_SRC = Path(__file__).with_name("rasterize_cpu.cpp")
+_lock = threading.Lock()
+_module = None
+_failed: str | None = None
+
+
+def load(required: bool = False, verbose: bool = False):
+    """Build (first time) and import the extension module.
+
+    Returns the module, or None when it cannot be built and ``required`` is False (a warning
+    is logged once). With ``required=True`` a failure raises :class:`GdiffError`.
+    """
+    global _module, _failed
+    with _lock:
+        if _module is None and _failed is None:
+            if os.environ.get("GDIFF_NO_CPP") == "1":
+                _failed = "disabled by GDIFF_NO_CPP=1"
+            else:
+                try:
+                    from torch.utils.cpp_extension import load as _load
+
+                    name = f"gdiff_splat_cpu_{platform.machine()}"
+                    _module = _load(
+                        name=name, sources=[str(_SRC)], verbose=verbose,
+                        extra_cflags=["-O3", "-march=native", "-ffp-contract=off",
+                                      "-fno-math-errno"])
+                except Exception as e:  # compiler missing, headers missing, build error
+                    _failed = f"{type(e).__name__}: {str(e).strip().splitlines()[-1:]}"
+                    log.warning("C++ rasterizer could not be built (%s); using the torch "
+                                "rasterizer, which is slower", _failed)
+        if _module is None and required:
+            raise GdiffError(f"rasterize backend 'cpp' is not available ({_failed}); install a "
+                             "C++ compiler (g++) or set the rasterize backend to 'auto' or "
+                             "'torch'")
+        return _module
+
+
+class _RasterizeCpp(torch.autograd.Function):
+    @staticmethod
+    def forward(ctx, means2d, conics, colors, opacities, extents, visible, order, width, height,
+                absgrad):
+        mod = load(required=True)
+        out, alpha, T_final, last, offsets, ids = mod.rasterize_forward(
+            means2d, conics, colors, opacities, extents, visible, order, width, height, TILE_SIZE)
+        ctx.save_for_backward(means2d, conics, colors, opacities, extents, offsets, ids,
+                              T_final, last)
+        ctx.size = (width, height)
+        ctx.absgrad = absgrad
+        ctx.mark_non_differentiable(T_final)
+        return out, alpha
+
+    @staticmethod
+    def backward(ctx, grad_out, grad_alpha):
+        means2d, conics, colors, opacities, extents, offsets, ids, T_final, last = \
+            ctx.saved_tensors
+        width, height = ctx.size
+        g_m, g_q, g_c, g_o, g_abs = load(required=True).rasterize_backward(
+            means2d, conics, colors, opacities, extents, offsets, ids, T_final, last,
+            grad_out.contiguous(), grad_alpha.contiguous(), width, height, TILE_SIZE,
+            ctx.absgrad is not None)
+        if ctx.absgrad is not None:
+            ctx.absgrad.append(g_abs)
+        return g_m, g_q, g_c, g_o, None, None, None, None, None, None
+
+
+def rasterize_cpp(means2d: torch.Tensor, conics: torch.Tensor, colors: torch.Tensor,
+                  opacities: torch.Tensor, extents: torch.Tensor, visible: torch.Tensor,
+                  depths: torch.Tensor, width: int, height: int,
+                  absgrad: bool = False) -> tuple[torch.Tensor, torch.Tensor]:
+    """Composite projected Gaussians with the C++ kernel (differentiable).
+
+    Args and returns as :func:`gdiff.splat.rasterize.rasterize_torch`: means2d [C,N,2],
+    conics [C,N,3], colors [C,N,D], opacities [C,N], extents [C,N,2], visible [C,N] bool,
+    depths [C,N] -> (features [C,H,W,D] without background, alphas [C,H,W,1]).
+    With ``absgrad`` the backward pass sets ``means2d.absgrad`` [C,N,2].
+    """
+    dtype = colors.dtype
+    order = torch.argsort(depths.detach(), dim=1, stable=True)
+    holder = [] if (absgrad and means2d.requires_grad) else None
+    out, alpha = _RasterizeCpp.apply(
+        means2d.to(dtype).contiguous(), conics.to(dtype).contiguous(), colors.contiguous(),
+        opacities.to(dtype).contiguous(), extents.detach().to(dtype).contiguous(),
+        visible.contiguous(), order.contiguous(), int(width), int(height), holder)
+    if holder is not None:
+        def hook(grad):
+            if holder:
+                means2d.absgrad = holder.pop().to(grad.dtype)
+            return grad
+
+        means2d.register_hook(hook)
+    return out, alpha

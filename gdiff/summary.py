@@ -102,6 +102,16 @@ def read_benchmark(path: str | Path) -> dict[str, float]:
             "max_rss_mb": col("max_rss", np.max), "repeats": int(len(df))}
 
 
+def find_benchmarks(folders: Mapping[str, str | Path]) -> dict[tuple[str, str], Path]:
+    """``{scene: benchmark folder}`` -> ``{(scene, rule): folder/<rule>.tsv}`` for every TSV
+    present (rules that have not run yet are simply absent)."""
+    out = {}
+    for scene, folder in folders.items():
+        for p in sorted(Path(folder).glob("*.tsv")):
+            out[(scene, p.stem)] = p
+    return out
+
+
 def collect_timings(benchmark_tsvs: Mapping[tuple[str, str], str | Path]) -> pd.DataFrame:
     """``{(scene, rule): tsv}`` -> table ``scene, rule, seconds, cpu_seconds, max_rss_mb,
     repeats`` sorted by scene then rule."""

@@ -9,7 +9,7 @@ import pytest
 from gdiff import metrics as M
 from gdiff.errors import SceneError
 from gdiff.io import read_image, write_csv
-from gdiff.summary import read_benchmark, summarize
+from gdiff.summary import find_benchmarks, read_benchmark, summarize
 
 BENCH_HEADER = "s\th:m:s\tmax_rss\tmax_vms\tmax_uss\tmax_pss\tio_in\tio_out\tmean_load\tcpu_time\n"
 
@@ -53,6 +53,7 @@ def test_summary_two_scenes(tmp_path):
         p.write_text(BENCH_HEADER + "".join(
             f"{ln}\t900\t400\t400\t1\t2\t0.5\t{float(ln.split()[0]) * 0.9}\n" for ln in lines))
         bench[(scene, rule)] = p
+    assert find_benchmarks({s: tmp_path / "benchmarks" / s for s in ("alpha", "beta")}) == bench
     res = summarize([a, b], bench, tmp_path / "results")
     s = pd.read_csv(tmp_path / "results" / "summary.csv").set_index(["scene", "method"])
     assert set(s.index) == {("alpha", "good"), ("alpha", "bad"), ("beta", "good"),

@@ -148,12 +148,19 @@ def _read_exr_openexr(path):
     from .io import linear_to_srgb
 
     with OpenEXR.File(str(path)) as f:
-        ch = f.channels()
-        if "RGB" in ch:
+        ch = f.channels()  # OpenEXR groups R, G, B(, A) into "RGB" / "RGBA"
+        alpha = None
+        if "RGBA" in ch:
+            px = np.asarray(ch["RGBA"].pixels, np.float32)
+            lin, alpha = px[..., :3], px[..., 3]
+        elif "RGB" in ch:
             lin = np.asarray(ch["RGB"].pixels, np.float32)
-        else:
+        elif all(c in ch for c in "RGB"):
             lin = np.stack([np.asarray(ch[c].pixels, np.float32) for c in "RGB"], -1)
-        alpha = np.asarray(ch["A"].pixels, np.float32) if "A" in ch else None
+        else:
+            raise SceneError(f"{path}: no R, G, B channels (has {', '.join(ch)}); re-run render")
+        if alpha is None and "A" in ch:
+            alpha = np.asarray(ch["A"].pixels, np.float32)
         depth = np.asarray(ch["Z"].pixels, np.float32) if "Z" in ch else None
     return linear_to_srgb(lin).astype(np.float32), alpha, depth
 

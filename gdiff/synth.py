@@ -215,34 +215,32 @@ def _hash01(seed: int, *coords: np.ndarray) -> np.ndarray:
     return (h >> _U64(11)).astype(np.float64) * (1.0 / 9007199254740992.0)
 
 
-_NOISE_N = 64  # value-noise lattice period (cells)
+_NOISE_N = 32  # value-noise lattice period (cells)
 
 
-@functools.lru_cache(maxsize=64)
+@functools.lru_cache(maxsize=128)
 def _noise_table(seed: int) -> np.ndarray:
-    """Random lattice values [64, 64, 64] float64 for value noise, fixed per seed."""
-    return np.random.default_rng(seed).random((_NOISE_N,) * 3)
+    """Random lattice values, flattened [32**3] float64, fixed per seed."""
+    return np.random.default_rng(seed).random(_NOISE_N ** 3)
 
 
 def _value_noise(p: np.ndarray, seed: int) -> np.ndarray:
-    """Smooth value noise in [0, 1] at points ``p`` [N, 3] (lattice spacing 1, period 64)."""
+    """Smooth value noise in [0, 1] at points ``p`` [N, 3] (lattice spacing 1, period 32)."""
     tab = _noise_table(seed)
     fl = np.floor(p)
     f = p - fl
     u = f * f * (3.0 - 2.0 * f)
     i = fl.astype(np.int64) & (_NOISE_N - 1)
     j = (i + 1) & (_NOISE_N - 1)
+    sx, sy = _NOISE_N * _NOISE_N, _NOISE_N
     out = np.zeros(len(p))
     for dx in (0, 1):
-        ix = j[:, 0] if dx else i[:, 0]
+        ox = (j[:, 0] if dx else i[:, 0]) * sx
         wx = u[:, 0] if dx else 1.0 - u[:, 0]
         for dy in (0, 1):
-            iy = j[:, 1] if dy else i[:, 1]
-            wy = u[:, 1] if dy else 1.0 - u[:, 1]
-            for dz in (0, 1):
-                iz = j[:, 2] if dz else i[:, 2]
-                wz = u[:, 2] if dz else 1.0 - u[:, 2]
-                out += wx * wy * wz * tab[ix, iy, iz]
+            oxy = ox + (j[:, 1] if dy else i[:, 1]) * sy
+            wxy = wx * (u[:, 1] if dy else 1.0 - u[:, 1])
+            out += wxy * ((1.0 - u[:, 2]) * tab.take(oxy + i[:, 2]) + u[:, 2] * tab.take(oxy + j[:, 2]))
     return out
 
 
@@ -330,11 +328,10 @@ def _voronoi(q: np.ndarray, seed: int, dims: int):
         for oy in (-1, 0, 1):
             for oz in rz:
                 c = base + np.array([ox, oy, oz])
-                fp = c + np.stack([_hash01(seed + k, c[:, 0], c[:, 1], c[:, 2])
-                                   for k in range(3)], 1)
-                if dims == 2:
-                    fp[:, 2] = q[:, 2]
-                d = np.linalg.norm(q - fp, axis=1)
+                cc = [c[:, 0], c[:, 1]] if dims == 2 else [c[:, 0], c[:, 1], c[:, 2]]
+                diff = q[:, :dims] - c[:, :dims]
+                d = np.sqrt(sum((diff[:, k] - _hash01(seed + k, *cc)) ** 2
+                                for k in range(dims)))
                 closer = d < d1
                 d2 = np.where(closer, d1, np.minimum(d2, d))
                 best[closer] = c[closer]
@@ -911,8 +908,9 @@ class SynthScene:
         7 + k object k of :attr:`objects`) and world normals ``n`` [N, 3] facing the ray.
         """
         t, code, n = self._room_hit(o, d)
+        cull = _RayCull(o, d)
         for c, fn, R, T, bc, br in self._casters(state):
-            idx = _sphere_candidates(o, d, bc, br, t)
+            idx = cull.candidates(bc, br, t)
             if len(idx) == 0:
                 continue
             tl, nl = fn((o[idx] - T) @ R, d[idx] @ R)
@@ -927,8 +925,9 @@ class SynthScene:
         """Whether rays ``o``, ``d`` [N, 3] hit the table or an object (shadow rays) -> bool [N]."""
         occ = np.zeros(len(o), dtype=bool)
         far = np.full(len(o), np.inf)
+        cull = _RayCull(o, d)
         for _, fn, R, T, bc, br in self._casters(state):
-            idx = _sphere_candidates(o, d, bc, br, far)
+            idx = cull.candidates(bc, br, far)
             idx = idx[~occ[idx]]
             if len(idx) == 0:
                 continue
@@ -1102,14 +1101,20 @@ def _check_state(state: str) -> None:
         raise ValueError(f"state must be 'before' or 'after', not {state!r}")
 
 
-def _sphere_candidates(o, d, centre, radius, t_max) -> np.ndarray:
-    """Indices of rays (unit ``d``) that pass within ``radius`` of ``centre`` somewhere in
-    (0, t_max): a cheap cull before exact intersection."""
-    oc = centre - o
-    tca = np.einsum("ij,ij->i", oc, d)
-    d2 = np.einsum("ij,ij->i", oc, oc) - tca * tca
-    ok = (d2 <= radius * radius) & (tca + radius > 0) & (tca - radius < t_max)
-    return np.flatnonzero(ok)
+class _RayCull:
+    """Cheap bounding-sphere culling for a batch of rays ``o``, ``d`` [N, 3] (unit ``d``)."""
+
+    def __init__(self, o: np.ndarray, d: np.ndarray):
+        self.o, self.d = o, d
+        self.od = np.einsum("ij,ij->i", o, d)
+        self.oo = np.einsum("ij,ij->i", o, o)
+
+    def candidates(self, centre: np.ndarray, radius: float, t_max: np.ndarray) -> np.ndarray:
+        """Indices of rays passing within ``radius`` of ``centre`` at some t in (0, t_max)."""
+        tca = self.d @ centre - self.od
+        d2 = centre @ centre - 2.0 * (self.o @ centre) + self.oo - tca * tca
+        ok = (d2 <= radius * radius) & (tca + radius > 0) & (tca - radius < t_max)
+        return np.flatnonzero(ok)
 
 
 def _camera_rays(cam: Camera, ss: int) -> tuple[np.ndarray, np.ndarray]:

@@ -147,18 +147,22 @@ def idcompare_method(detect: Callable | None = None, render: Renderer | None = N
     """Instance-ID comparison of the eval pair, without the partition model.
 
     Calls ``detect(rgb0, rgb1, depth0=None, depth1=None, **kwargs) -> (mask_t0, mask_t1)``
-    (default: ``gdiff.change.detect_changes_pair``, imported on first use) and returns the
-    union of the two masks (the GT marks changed objects visible before *or* after).
+    (default: ``gdiff.change.detect_changes_pair``, imported on first use, which also gets the
+    eval camera's ``K`` when known; pass ``segment_options=``, ``track_options=``,
+    ``options=`` through ``kwargs``) and returns the union of the two masks (the GT marks
+    changed objects visible before *or* after).
     """
 
     def method(view: "EvalView") -> Prediction:
-        fn = detect
+        fn, kw = detect, dict(kwargs)
         if fn is None:
             from .change import detect_changes_pair  # lazy: stage module
 
             fn = detect_changes_pair
+            if view.camera is not None:
+                kw.setdefault("K", view.camera_at_gt_size().K)
         rgb0, rgb1 = _pair(view, render)
-        m0, m1 = fn(rgb0, rgb1, depth0=None, depth1=None, **kwargs)
+        m0, m1 = fn(rgb0, rgb1, depth0=None, depth1=None, **kw)
         return Prediction(_np(m0).astype(bool) | _np(m1).astype(bool))
 
     method.__name__ = "idcompare"

@@ -316,7 +316,9 @@ def _label(img: np.ndarray, text: str, row: int = 0) -> np.ndarray:
     u8 = np.ascontiguousarray((np.clip(img, 0, 1) * 255).astype(np.uint8))
     scale = max(0.3, img.shape[1] / 800.0)
     y = int(round(30 * scale)) * (row + 1)
-    cv2.putText(u8, text, (4, y), cv2.FONT_HERSHEY_SIMPLEX, scale, (0, 0, 0), 3, cv2.LINE_AA)
+    (tw, th), base = cv2.getTextSize(text, cv2.FONT_HERSHEY_SIMPLEX, scale, 1)
+    x0, y0 = 2, max(0, y - th - 2)
+    u8[y0:y + base + 1, x0:x0 + tw + 4] //= 3  # dark backdrop keeps the text readable
     cv2.putText(u8, text, (4, y), cv2.FONT_HERSHEY_SIMPLEX, scale, (255, 255, 255), 1,
                 cv2.LINE_AA)
     return u8.astype(np.float32) / 255.0

@@ -225,19 +225,22 @@ def test_ccs3d(tmp_path):
             posed.append((n, _c2w(k + i)))
     # test views 010 (same camera before and after), 011 (pre only), 012 (post only)
     for name, d, pose in (("pre_010.png", "test-pre", 20), ("post_010.png", "test-post", 20),
-                          ("pre_011.png", "test-pre", 21), ("post_012.png", "test-post", 22)):
+                          ("pre_011.png", "test-pre", 21), ("post_012.png", "test-post", 22),
+                          ("pre_013.png", "test-pre", 23), ("post_013.png", "test-post", 24)):
         _img(src / d / name, seed=pose)
         posed.append((name, _c2w(pose)))
     _mask(src / "gt-pre-mask" / "gt_010.png", box=(0, 0, 4, 4))
     _mask(src / "gt-post-mask" / "gt_010.png", box=(8, 6, 12, 10))
     _mask(src / "gt-pre-mask" / "gt_011.png")
     _mask(src / "gt-post-mask" / "gt_012.png")
+    _mask(src / "gt-pre-mask" / "gt_013.png")  # same number, another camera: not a pair
+    _mask(src / "gt-post-mask" / "gt_013.png")
     _write_colmap(src / "sparse" / "0", posed)
     assert detect_format(src) == "ccs3d"
     out = import_scene("ccs3d", src, tmp_path / "scene")
     ev = out / "eval"
-    assert sorted(p.stem for p in (ev / "masks").iterdir()) == ["post_010", "post_post_012",
-                                                                 "pre_pre_011"]
+    assert sorted(p.stem for p in (ev / "masks").iterdir()) == [
+        "post_010", "post_post_012", "post_post_013", "pre_pre_011", "pre_pre_013"]
     assert (ev / "before" / "post_010.png").resolve() == (src / "test-pre" / "pre_010.png").resolve()
     union = read_mask(ev / "masks" / "post_010.png")
     assert union.sum() == 32 and union[0, 0] and union[7, 9]

@@ -5,9 +5,10 @@ A scene folder holds::
     before/*.png|jpg            images before the change (t = 0), at least 3
     after/*.png|jpg             images after the change (t = 1), at least 3
     eval/before/NAME, eval/after/NAME, eval/masks/NAME
-                                optional evaluation pairs at shared viewpoints with ground-truth
-                                change masks (255 = changed); every eval image needs its partner
-                                and its mask (matched by file stem)
+                                optional evaluation views with ground-truth change masks
+                                (255 = changed), matched by file stem; every view needs its mask
+                                and at least one of its before/after images (a missing one is
+                                rendered from the model at evaluation)
     cameras.json | transforms.json
                                 optional known poses (else COLMAP registers the images)
 
@@ -220,15 +221,18 @@ def validate_scene(scene_dir: str | Path) -> dict:
             raise SceneError(f"{ev}: folder exists but eval/before/ and eval/after/ hold no "
                              "images; remove eval/ or add the evaluation pairs")
         for stem in sorted(stems):
-            for k in ("before", "after", "masks"):
-                if stem not in parts[k]:
-                    have = [kk for kk in ("before", "after", "masks") if stem in parts[kk]]
-                    raise SceneError(f"{ev}: eval view '{stem}' has {', '.join(have)} but no "
-                                     f"eval/{k}/{stem}.* ; every eval view needs before, after "
-                                     "and masks images with the same name")
-            images += [{"path": str(parts["before"][stem].relative_to(root)), "set": "eval_before"},
-                       {"path": str(parts["after"][stem].relative_to(root)), "set": "eval_after"},
-                       {"path": str(parts["masks"][stem].relative_to(root)), "set": "eval_mask"}]
+            if stem not in parts["masks"]:
+                have = [k for k in ("before", "after") if stem in parts[k]]
+                raise SceneError(f"{ev}: eval view '{stem}' has {' and '.join(have)} but no "
+                                 f"eval/masks/{stem}.* ; every eval view needs its ground-truth "
+                                 "change mask (255 = changed) with the same name")
+            # One-sided views (only eval/after, as in 3DGS-CD or PASLCD) are allowed: the
+            # evaluation renders the missing time from the fitted model.
+            for k, st in (("before", "eval_before"), ("after", "eval_after")):
+                if stem in parts[k]:
+                    images.append({"path": str(parts[k][stem].relative_to(root)), "set": st})
+            images.append({"path": str(parts["masks"][stem].relative_to(root)),
+                           "set": "eval_mask"})
             eval_views.append(stem)
         extra = set(parts["masks"]) - stems
         if extra:

@@ -75,12 +75,27 @@ def test_mixed_sizes_named(tmp_path):
         validate_scene(root)
 
 
-@pytest.mark.parametrize("missing", ["after", "masks"])
-def test_eval_pair_incomplete(tmp_path, missing):
+def test_eval_view_without_mask(tmp_path):
     root = make_scene(tmp_path / "s", eval_views=("000", "001"))
-    (root / "eval" / missing / "001.png").unlink()
-    with pytest.raises(SceneError, match=f"eval view '001'.*no eval/{missing}/001"):
+    (root / "eval" / "masks" / "001.png").unlink()
+    with pytest.raises(SceneError, match="eval view '001' has before and after but no "
+                                         "eval/masks/001"):
         validate_scene(root)
+
+
+def test_eval_mask_without_images(tmp_path):
+    root = make_scene(tmp_path / "s", eval_views=("000",))
+    _img(root / "eval" / "masks" / "007.png")
+    with pytest.raises(SceneError, match="mask\\(s\\) 007 have no"):
+        validate_scene(root)
+
+
+def test_one_sided_eval_view_allowed(tmp_path):
+    root = make_scene(tmp_path / "s", eval_views=("000", "001"))
+    (root / "eval" / "before" / "001.png").unlink()
+    m = validate_scene(root)
+    assert m["eval_views"] == ["000", "001"]
+    assert [r["set"] for r in m["images"]].count("eval_before") == 1
 
 
 def test_discover_single_folder_and_folder_of_scenes(tmp_path):

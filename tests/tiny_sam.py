@@ -18,10 +18,11 @@ What they compute: the encoder average-pools the normalised image over 16 x 16 b
 the 3 colour channels are the embedding; ``random``: a random 1x1 convolution to 8 channels and
 tanh). The decoder samples the embedding at the first prompt point (bilinear) and gives, for each
 mask token k, logits ``slope_k * (tau_k - d2)`` where d2 is the squared embedding distance of
-every low-resolution pixel to the prompt's embedding: a mask of the region that looks like the
-prompt point. The ``oracle`` models have fixed tokens (see ``ORACLE_SAM_TOKENS``) so a test can
-predict which masks pass each filter and where segments appear; the ``random`` models draw token
-parameters, channel weights and a sigmoid IoU head from ``seed``.
+every embedding cell to the prompt's embedding (upsampled from 64 x 64 to 256 x 256): a mask
+of the region that looks like the prompt point. The ``oracle`` models have fixed tokens (see
+``ORACLE_SAM_TOKENS``) so a test can predict which masks pass each filter and where segments
+appear; the ``random`` models draw token parameters, channel weights and a sigmoid IoU head
+from ``seed``.
 """
 
 from __future__ import annotations
@@ -42,7 +43,7 @@ STD = np.array([58.395, 57.12, 57.375], dtype=np.float32)
 #: Oracle SAM decoder tokens (tau, slope, predicted IoU). Token 0 is SAM's single-mask output
 #: (dropped by "segment everything"); 1 is a tight, stable, confident mask; 2 is confident but
 #: unstable (its logits never exceed the stability offset); 3 is a loose mask with low IoU.
-ORACLE_SAM_TOKENS = [(0.3, 40.0, 0.50), (0.3, 40.0, 0.97), (0.6, 1.5, 0.95), (3.0, 40.0, 0.70)]
+ORACLE_SAM_TOKENS = [(2.0, 40.0, 0.50), (2.0, 40.0, 0.97), (2.0, 0.4, 0.95), (6.0, 40.0, 0.70)]
 #: Oracle EfficientSAM tokens (its decoder has no single-mask token).
 ORACLE_ESAM_TOKENS = ORACLE_SAM_TOKENS[1:]
 
@@ -141,12 +142,11 @@ def _token_logits(g: _Graph, emb1: str, point_grid: str, n_prompts: str, tokens,
     emb_b = g.op("Expand", emb1, shape_b111)
     at_point = g.op("GridSample", emb_b, point_grid, align_corners=0, mode="bilinear",
                     padding_mode="border")  # [B, C, 1, 1]
-    up = g.op("Resize", emb1, "", g.const([1, 1, L / E, L / E]), mode="linear")
-    diff = g.op("Sub", up, at_point)
+    diff = g.op("Sub", emb1, at_point)  # [B, C, 64, 64]
     sq = g.op("Mul", diff, diff)
     if kind == "random":
         sq = g.op("Mul", sq, g.const(rng.uniform(0.5, 1.5, (1, channels, 1, 1))))
-    d2 = g.op("ReduceSum", sq, g.const([1], np.int64), keepdims=1)  # [B, 1, L, L]
+    d2 = g.op("ReduceSum", sq, g.const([1], np.int64), keepdims=1)  # [B, 1, 64, 64]
     if kind == "oracle":
         tau = [t[0] for t in tokens]
         slope = [t[1] for t in tokens]
@@ -155,6 +155,7 @@ def _token_logits(g: _Graph, emb1: str, point_grid: str, n_prompts: str, tokens,
         slope = rng.uniform(1.0, 40.0, k)
     logits = g.op("Mul", g.op("Sub", g.const(np.reshape(tau, (1, k, 1, 1))), d2),
                   g.const(np.reshape(slope, (1, k, 1, 1))))
+    logits = g.op("Resize", logits, "", g.const([1, 1, L / E, L / E]), mode="linear")
     if kind == "oracle":
         shape_bk = g.op("Concat", n_prompts, g.const([k], np.int64), axis=0)
         iou = g.op("Expand", g.const(np.reshape([t[2] for t in tokens], (1, k))), shape_bk)
@@ -269,7 +270,8 @@ def sam2_like_decoder(path) -> Path:
                   "sam2_decoder")
 
 
-def model_pair(folder, variant: str = "sam", kind: str = "oracle", **decoder_kw) -> tuple[Path, Path]:
+def model_pair(folder, variant: str = "sam", kind: str = "oracle",
+               **decoder_kw) -> tuple[Path, Path]:
     """Write an (encoder, decoder) pair into ``folder``.
 
     ``variant``: ``sam`` (nchw encoder), ``sam_hwc`` (samexporter --use-preprocess encoder) or

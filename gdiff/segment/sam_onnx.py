@@ -293,10 +293,16 @@ class SamOnnxModel:
         enc = enc_in[0]
         self._enc_name = enc.name
         shape = list(enc.shape)
+        if self.variant == "sam" and len(shape) == 4 and (
+                enc.name == "batched_images" or None in [_static(d) for d in shape[2:]]):
+            raise ModelFileError(f"{self.encoder_path}: input {enc.name} {shape} is an "
+                                 f"EfficientSAM encoder (any image size) but "
+                                 f"{self.decoder_path} is a SAM/MobileSAM decoder; use the "
+                                 f"decoder exported with this encoder")
         if self.variant == "sam" and len(shape) == 4 and _static(shape[1]) in (3, None):
             self.encoder_layout = "nchw"
-            self.image_size = _static(shape[2]) or 16 * self.embed_size
-            if _static(shape[3]) not in (None, self.image_size):
+            self.image_size = _static(shape[2])
+            if _static(shape[3]) != self.image_size:
                 raise ModelFileError(f"{self.encoder_path}: input {enc.name} {shape} is not "
                                      f"square; a SAM encoder takes [1, 3, S, S]")
         elif self.variant == "sam" and len(shape) == 3 and _static(shape[2]) in (3, None):
@@ -461,18 +467,26 @@ def lowres_to_image(low: np.ndarray, resized_size: tuple[int, int], image_size: 
 
     ``low``: float [K, L, L] logits over the model's S x S frame (L = S / 4); the image occupies
     the top-left ``resized_size`` (h', w') of that frame. Returns float32 [K, h, w]: one bilinear
-    resampling at the original pixel centres (undoes the padding and the resize in one step).
+    resampling at the original pixel centres (undoes the padding and the resize in one step;
+    edge values are repeated outside the grid).
     """
-    low = np.asarray(low, dtype=np.float32)
+    import torch
+    import torch.nn.functional as F
+
+    low_t = torch.from_numpy(np.ascontiguousarray(low, dtype=np.float32))
     (h, w), (rh, rw) = orig_size, resized_size
-    f = low.shape[-1] / image_size
-    sx, sy = rw / w * f, rh / h * f
-    m = np.array([[sx, 0.0, 0.5 * sx - 0.5], [0.0, sy, 0.5 * sy - 0.5]])
-    out = np.empty((low.shape[0], h, w), dtype=np.float32)
-    for k in range(low.shape[0]):
-        out[k] = cv2.warpAffine(low[k], m, (w, h), flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
-                                borderMode=cv2.BORDER_REPLICATE)
-    return out
+    n = low_t.shape[-1]
+    # original pixel centre -> S-frame position -> grid_sample's [-1, 1] (align_corners=False)
+    gx = (torch.arange(w, dtype=torch.float32) + 0.5) * (rw / w) * (2.0 / image_size) - 1.0
+    gy = (torch.arange(h, dtype=torch.float32) + 0.5) * (rh / h) * (2.0 / image_size) - 1.0
+    grid = torch.stack(torch.meshgrid(gx, gy, indexing="xy"), dim=-1)  # [h, w, 2] (x, y)
+    out = []
+    for k in range(0, low_t.shape[0], 256):
+        chunk = low_t[k:k + 256, None].reshape(-1, 1, n, n)
+        g = grid.expand(chunk.shape[0], h, w, 2)
+        out.append(F.grid_sample(chunk, g, mode="bilinear", padding_mode="border",
+                                 align_corners=False)[:, 0])
+    return torch.cat(out).numpy()
 
 
 def resize_logits(masks: np.ndarray, size: tuple[int, int]) -> np.ndarray:

@@ -1,0 +1,295 @@
+"""Poses stage: COLMAP registration, known-pose import, failure modes, PLY, Sim3 scoring."""
+
+from __future__ import annotations
+
+import json
+import logging
+from pathlib import Path
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from gdiff.align import orbit_radius, pose_errors, umeyama_sim3
+from gdiff.cameras import cameras_to_json, cameras_to_transforms, load_cameras
+from gdiff.errors import ConfigError, PosesError
+from gdiff.io import write_image
+from gdiff.options import from_config
+from gdiff.sfm import (PosesOptions, discover_images, proximity_pairs, read_cameras_file,
+                       read_points_ply, run_poses, sequential_pairs, set_from_path,
+                       write_points_ply)
+
+
+def _linked_scene(src: Path, dst: Path) -> Path:
+    """A scene folder whose image folders are symlinks into ``src`` (src stays untouched)."""
+    dst.mkdir(parents=True)
+    for name in ("before", "after", "eval"):
+        (dst / name).symlink_to((src / name).resolve(), target_is_directory=True)
+    return dst
+
+
+def _noise_image(path: Path, seed: int, size=(96, 128)) -> None:
+    rng = np.random.default_rng(seed)
+    write_image(path, rng.random((*size, 3), dtype=np.float32))
+
+
+@pytest.fixture(scope="module")
+def gt_tiny(synth_tiny_dir):
+    return read_cameras_file(Path(synth_tiny_dir) / "gt_cameras.json")
+
+
+@pytest.fixture(scope="module")
+def registered_tiny(synth_tiny_dir, tmp_path_factory):
+    out = tmp_path_factory.mktemp("poses_tiny")
+    summary = run_poses(synth_tiny_dir, out, PosesOptions(num_threads=2))
+    return out, summary
+
+
+# ------------------------------------------------------------------ COLMAP registration
+
+
+def test_register_tiny_all_sets_accurate(registered_tiny, gt_tiny, synth_tiny_dir):
+    out, summary = registered_tiny
+    images = discover_images(synth_tiny_dir)
+    assert summary["source"] == "colmap" and summary["matcher"] == "exhaustive"
+    assert summary["registered"] == summary["images"]
+    assert summary["images"] == {"before": 10, "after": 10, "eval_before": 3, "eval_after": 3}
+    assert summary["mean_reprojection_error"] < 1.0
+    cams = load_cameras(out / "cameras.json")
+    # every image once, in input order, with its set and time
+    assert [c.image for c in cams] == [n for n, _ in images]
+    assert [c.set for c in cams] == [s for _, s in images]
+    assert all(c.time == (0 if c.set in ("before", "eval_before") else 1) for c in cams)
+    # one shared pinhole camera close to the true intrinsics
+    g = gt_tiny[0]
+    assert len({(c.fx, c.fy, c.cx, c.cy) for c in cams}) == 1
+    assert abs(cams[0].fx - g.fx) / g.fx < 0.03 and abs(cams[0].fy - g.fy) / g.fy < 0.03
+    # accuracy after Sim3 alignment (tiny is 128x96, so looser than the benchmark targets)
+    err = pose_errors(cams, gt_tiny)
+    assert len(err) == 26
+    assert err.rot_err_deg.median() < 2.0
+    assert err.center_err_frac.median() < 0.05
+    for c in cams:
+        assert np.allclose(c.c2w[:3, :3] @ c.c2w[:3, :3].T, np.eye(3), atol=1e-6)
+        assert np.linalg.det(c.c2w[:3, :3]) > 0.99
+
+
+def test_register_tiny_writes_model_and_points(registered_tiny):
+    import pycolmap
+
+    out, summary = registered_tiny
+    xyz, rgb = read_points_ply(out / "points.ply")
+    assert xyz.dtype == np.float32 and rgb.dtype == np.uint8
+    assert len(xyz) == summary["num_points"] > 100
+    rec = pycolmap.Reconstruction(str(out / "sparse" / "0"))
+    assert rec.num_reg_images() == 26 and rec.num_points3D() == len(xyz)
+    # points are in front of the cameras that see them: project into cameras.json poses
+    cams = load_cameras(out / "cameras.json")
+    c = cams[0]
+    p = (c.w2c[:3, :3] @ xyz.T.astype(np.float64)).T + c.w2c[:3, 3]
+    front = p[:, 2] > 0
+    uv = (c.K @ p[front].T).T
+    uv = uv[:, :2] / uv[:, 2:]
+    inside = (uv[:, 0] >= 0) & (uv[:, 0] < c.width) & (uv[:, 1] >= 0) & (uv[:, 1] < c.height)
+    assert inside.sum() > 50  # the first camera sees a good part of the cloud
+    assert not list(out.glob(".poses_work_*"))  # temporary folder cleaned up
+
+
+# ------------------------------------------------------------------ known poses
+
+
+def test_known_poses_from_cameras_json(synth_tiny_dir, gt_tiny, tmp_path):
+    scene = _linked_scene(Path(synth_tiny_dir), tmp_path / "scene")
+    # the ground-truth layout (intrinsics block, 'file' per frame) is accepted as cameras.json
+    (scene / "cameras.json").write_text((Path(synth_tiny_dir) / "gt_cameras.json").read_text())
+    out = tmp_path / "poses"
+    summary = run_poses(scene, out, PosesOptions(num_threads=2))
+    assert summary["source"] == "known"
+    assert summary["registered"] == summary["images"]
+    cams = load_cameras(out / "cameras.json")
+    gt = {c.image: c for c in gt_tiny}
+    for c in cams:
+        assert np.allclose(c.c2w, gt[c.image].c2w, atol=1e-9)
+        assert (c.fx, c.cx) == (gt[c.image].fx, gt[c.image].cx)
+    xyz, _ = read_points_ply(out / "points.ply")
+    assert len(xyz) == summary["num_points"] > 100
+    assert summary["mean_reprojection_error"] < 1.0
+    # triangulated with the true poses, points lie in the synth room (|x|,|y| < 3.2, 0<=z<=2.8)
+    inside = (np.abs(xyz[:, :2]) < 3.3).all(1) & (xyz[:, 2] > -0.1) & (xyz[:, 2] < 2.9)
+    assert inside.mean() > 0.95
+
+
+def test_known_poses_from_transforms_json(synth_tiny_dir, gt_tiny, tmp_path):
+    scene = _linked_scene(Path(synth_tiny_dir), tmp_path / "scene")
+    subset = [c for c in gt_tiny if c.set in ("before", "after")]
+    data = cameras_to_transforms(subset)
+    for fr in data["frames"]:
+        fr["file_path"] = "./" + fr["file_path"]
+    (scene / "transforms.json").write_text(json.dumps(data))
+    images = [(c.image, c.set) for c in subset]
+    out = tmp_path / "poses"
+    summary = run_poses(scene, out, PosesOptions(source="known", num_threads=2), images=images)
+    assert summary["source"] == "known" and summary["num_points"] > 50
+    cams = load_cameras(out / "cameras.json")
+    assert [c.image for c in cams] == [c.image for c in subset]
+    for c, g in zip(cams, subset):
+        # OpenGL axes in transforms.json came back as OpenCV c2w
+        assert np.allclose(c.c2w, g.c2w, atol=1e-9)
+
+
+def test_known_source_without_file_is_an_error(synth_tiny_dir, tmp_path):
+    scene = _linked_scene(Path(synth_tiny_dir), tmp_path / "scene")
+    with pytest.raises(PosesError, match="cameras.json or transforms.json"):
+        run_poses(scene, tmp_path / "poses", PosesOptions(source="known"))
+
+
+def test_known_poses_missing_for_too_many_images(synth_tiny_dir, gt_tiny, tmp_path):
+    scene = _linked_scene(Path(synth_tiny_dir), tmp_path / "scene")
+    keep = [c for c in gt_tiny if c.image not in ("after/000.png", "after/001.png",
+                                                   "after/002.png")]
+    (scene / "cameras.json").write_text(json.dumps(cameras_to_json(keep)))
+    with pytest.raises(PosesError, match="after: 3 of 10") as e:
+        run_poses(scene, tmp_path / "poses", PosesOptions())
+    assert "after/001.png" in str(e.value)
+    assert not (tmp_path / "poses" / "cameras.json").exists()
+
+
+# ------------------------------------------------------------------ failures
+
+
+def test_unregistered_fraction_error_and_drop(synth_tiny_dir, tmp_path, caplog):
+    scene = _linked_scene(Path(synth_tiny_dir), tmp_path / "scene")
+    # a set of real images plus pure-noise photos that cannot be registered
+    (scene / "before").unlink()
+    (scene / "before").mkdir()
+    for p in sorted((Path(synth_tiny_dir) / "before").glob("*.png")):
+        (scene / "before" / p.name).symlink_to(p.resolve())
+    for k in range(3):
+        _noise_image(scene / "before" / f"90{k}.png", k)
+    images = [(f"before/{p.name}", "before") for p in sorted((scene / "before").glob("*.png"))]
+    images += [(f"after/{i:03d}.png", "after") for i in range(10)]
+    noise = ["before/900.png", "before/901.png", "before/902.png"]
+    # 3 of 13 before images lost = 23% > 20%
+    with pytest.raises(PosesError, match=r"before: 3 of 13 \(" + ", ".join(noise) + r"\)"):
+        run_poses(scene, tmp_path / "p1", PosesOptions(num_threads=2), images=images)
+    # with a looser limit the noise images are dropped with a warning (sequential matcher)
+    with caplog.at_level(logging.WARNING, logger="gdiff.sfm"):
+        summary = run_poses(scene, tmp_path / "p2",
+                            PosesOptions(max_unregistered_fraction=0.3, matcher="sequential",
+                                         sequential_overlap=3, sequential_links=3,
+                                         num_threads=2), images=images)
+    assert summary["matcher"] == "sequential"
+    assert summary["dropped"] == noise
+    assert summary["registered"] == {"before": 10, "after": 10}
+    assert "dropping 3 image(s)" in caplog.text
+    names = [c.image for c in load_cameras(tmp_path / "p2" / "cameras.json")]
+    assert names == [n for n, _ in images if "90" not in n]
+
+
+def test_unmatchable_images_raise_poses_error(tmp_path):
+    scene = tmp_path / "noise"
+    for st in ("before", "after"):
+        for i in range(3):
+            _noise_image(scene / st / f"{i:03d}.png", hash((st, i)) % 1000)
+    with pytest.raises(PosesError, match="could not register") as e:
+        run_poses(scene, tmp_path / "poses", PosesOptions(num_threads=2))
+    msg = str(e.value)
+    assert "overlap" in msg and "known poses" in msg
+    assert not (tmp_path / "poses" / "cameras.json").exists()
+    assert not list((tmp_path / "poses").glob(".poses_work_*"))
+
+
+# ------------------------------------------------------------------ helpers
+
+
+def test_options_validation():
+    assert from_config(PosesOptions, {"matcher": "sequential"}, "poses").matcher == "sequential"
+    with pytest.raises(ConfigError, match="poses"):
+        from_config(PosesOptions, {"source": "gps"}, "poses")
+    with pytest.raises(ConfigError, match="camera_model"):
+        from_config(PosesOptions, {"camera_model": "OPENCV"}, "poses")
+    with pytest.raises(ConfigError, match="unknown key"):
+        from_config(PosesOptions, {"matchr": "x"}, "poses")
+
+
+def test_set_from_path():
+    assert set_from_path("before/a.png") == "before"
+    assert set_from_path("after/x/a.png") == "after"
+    assert set_from_path("eval/before/000.png") == "eval_before"
+    assert set_from_path("eval/after/000.png") == "eval_after"
+    assert set_from_path("eval/masks/000.png") is None
+    assert set_from_path("a.png") is None
+
+
+def test_sequential_pairs_cover_neighbours_and_link_sets():
+    a = [f"before/{i:03d}" for i in range(20)]
+    b = [f"after/{i:03d}" for i in range(20)]
+    pairs = set(sequential_pairs([a, b], overlap=3, links=2))
+    for g in (a, b):
+        for i in range(20):
+            for k in (1, 2, 3):
+                x, y = g[i], g[(i + k) % 20]
+                assert (min(x, y), max(x, y)) in pairs
+    cross = [p for p in pairs if p[0].startswith("after") != p[1].startswith("after")]
+    linked = {x for p in cross for x in p}
+    assert linked == set(a) | set(b)  # every image has links into the other set
+    assert len(pairs) < 40 * 39 // 2 / 2  # far fewer than exhaustive
+    assert all(x < y for x, y in pairs)
+
+
+def test_proximity_pairs_prefers_nearby_facing_cameras(gt_tiny):
+    cams = [c for c in gt_tiny if c.set == "before"]
+    pairs = proximity_pairs(cams, k=2)
+    # on an orbit, nearest neighbours are the capture-order neighbours
+    for i in range(1, len(cams) - 1):
+        assert (cams[i - 1].image, cams[i].image) in pairs
+
+
+def test_points_ply_roundtrip(tmp_path):
+    rng = np.random.default_rng(0)
+    xyz = rng.normal(size=(57, 3)).astype(np.float32)
+    rgb = rng.integers(0, 256, size=(57, 3)).astype(np.uint8)
+    write_points_ply(tmp_path / "p.ply", xyz, rgb)
+    data = (tmp_path / "p.ply").read_bytes()
+    assert b"format binary_little_endian 1.0" in data and b"property uchar red" in data
+    assert len(data) == data.index(b"end_header\n") + 11 + 57 * 15
+    x2, c2 = read_points_ply(tmp_path / "p.ply")
+    assert np.array_equal(x2, xyz) and np.array_equal(c2, rgb)
+
+
+def test_umeyama_recovers_similarity():
+    rng = np.random.default_rng(3)
+    src = rng.normal(size=(30, 3))
+    R = Rotation.from_rotvec([0.3, -1.2, 0.7]).as_matrix()
+    dst = 2.5 * src @ R.T + np.array([1.0, -2.0, 0.5])
+    s, R2, t = umeyama_sim3(src, dst)
+    assert s == pytest.approx(2.5) and np.allclose(R2, R) and np.allclose(t, [1, -2, 0.5])
+    # a reflection is never returned
+    s, R3, _ = umeyama_sim3(src, src * np.array([1, 1, -1]))
+    assert np.linalg.det(R3) == pytest.approx(1.0)
+
+
+def test_pose_errors_zero_for_transformed_copy_and_detect_error(gt_tiny):
+    R = Rotation.from_rotvec([0.1, 0.4, -0.2]).as_matrix()
+    T = np.eye(4)
+    T[:3, :3], T[:3, 3] = 0.5 * R, [3.0, 1.0, -1.0]
+    est = []
+    for c in gt_tiny:
+        c2w = T @ c.c2w
+        c2w[:3, :3] /= 0.5  # keep the rotation orthonormal
+        est.append(c.with_pose(c2w))
+    df = pose_errors(est, gt_tiny)
+    assert df.rot_err_deg.max() < 1e-5 and df.center_err_frac.max() < 1e-9
+    assert df.attrs["scale"] == pytest.approx(2.0)
+    # perturb one camera by 5 degrees, shift another by 10% of the orbit radius
+    radius = orbit_radius(np.stack([c.center for c in gt_tiny]))
+    bad = est[4].c2w.copy()
+    bad[:3, :3] = Rotation.from_rotvec([0, 0, np.radians(5)]).as_matrix() @ bad[:3, :3]
+    est[4] = est[4].with_pose(bad)
+    moved = est[7].c2w.copy()
+    moved[:3, 3] += np.array([0.0, 0.0, 0.1 * radius]) / 2.0  # est frame is scaled by 1/2
+    est[7] = est[7].with_pose(moved)
+    df = pose_errors(est, gt_tiny)
+    assert df.rot_err_deg.iloc[4] == pytest.approx(5.0, abs=0.05)
+    assert 0.08 < df.center_err_frac.iloc[7] < 0.11
+    assert df.center_err_frac.drop(7).median() < 0.01

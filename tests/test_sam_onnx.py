@@ -88,6 +88,7 @@ def models(tmp_path_factory):
         "efficientsam": tiny_sam.model_pair(root / "c", "efficientsam"),
         "sam_batched": tiny_sam.model_pair(root / "d", "sam", batched=True),
         "sam_masks_only": tiny_sam.model_pair(root / "e", "sam", low_res=False),
+        "sam_single": tiny_sam.model_pair(root / "h", "sam_hwc", single_mask=True),
         "random": tiny_sam.model_pair(root / "f", "sam", kind="random", batched=True, seed=3),
         "random_esam": tiny_sam.model_pair(root / "g", "efficientsam", kind="random",
                                            batched=True, seed=4),
@@ -112,7 +113,7 @@ def test_tiny_models_are_tiny_and_shaped_like_the_exports(models):
 # ---- end to end with the oracle models ------------------------------------------------------
 
 @pytest.mark.parametrize("variant", ["sam", "sam_hwc", "efficientsam", "sam_batched",
-                                     "sam_masks_only"])
+                                     "sam_masks_only", "sam_single"])
 def test_oracle_segments_come_out_where_the_objects_are(models, variant):
     img, gt = scene()
     seg = SamOnnxSegmenter(*models[variant], points_per_side=N_SIDE)
@@ -174,6 +175,11 @@ def test_grid_prompts_and_filters_count_as_expected(models):
     assert 0 < st["after_stability"] <= n  # token 2 is never stable
     assert all(p.predicted_iou == pytest.approx(0.97) for p in props)
     assert all(p.stability_score >= 0.95 for p in props)
+
+    # a --return-single-mask export gives one mask per prompt
+    single = SamOnnxSegmenter(*models["sam_single"], points_per_side=N_SIDE)
+    single.generate(img)
+    assert single.last_stats["candidates"] == n
 
     # lower thresholds let more through
     loose = SamOnnxSegmenter(*models["sam"], points_per_side=N_SIDE, pred_iou_thresh=0.6,

@@ -168,11 +168,13 @@ def _token_logits(g: _Graph, emb1: str, point_grid: str, n_prompts: str, tokens,
 
 
 def sam_decoder(path, kind: str = "oracle", batched: bool = False, low_res: bool = True,
-                channels: int | None = None, seed: int = 0) -> Path:
+                single_mask: bool = False, channels: int | None = None, seed: int = 0) -> Path:
     """A SAM/MobileSAM prompt+mask decoder (segment-anything's ONNX signature).
 
     ``batched``: the point_coords batch dimension is symbolic (several prompts per call);
-    otherwise it is 1 as in the official export. ``low_res``: also output ``low_res_masks``
+    otherwise it is 1 as in the official export. ``single_mask``: one mask per prompt (the
+    export's ``--return-single-mask``; for a point + padding prompt SAM returns its best
+    multimask output, here oracle token 1). ``low_res``: also output ``low_res_masks``
     (the official export does); ``masks`` is always output, at ``orig_im_size`` (the resized
     image's part of the low-resolution logits, resized).
     """
@@ -193,6 +195,9 @@ def sam_decoder(path, kind: str = "oracle", batched: bool = False, low_res: bool
     n_prompts = g.op("Slice", g.op("Shape", "point_coords"), g.const([0], np.int64),
                      g.const([1], np.int64))
     tokens = ORACLE_SAM_TOKENS if kind == "oracle" else [None] * 4
+    if single_mask:
+        tokens = tokens[1:2]
+    m = len(tokens)
     logits, iou = _token_logits(g, "image_embeddings", grid, n_prompts, tokens, kind, c, rng)
     # a prompt mask (has_mask_input = 1) shifts the logits, so the inputs are really used
     prior = g.op("Mul", "has_mask_input", g.op("ReduceMean", "mask_input", keepdims=0))
@@ -206,10 +211,10 @@ def sam_decoder(path, kind: str = "oracle", batched: bool = False, low_res: bool
     crop = g.op("Slice", low, g.const([0, 0], np.int64), low_hw, g.const([2, 3], np.int64))
     orig_i = g.op("Cast", "orig_im_size", to=TensorProto.INT64)
     g.op("Resize", crop, "", "", g.op("Concat", bk, orig_i, axis=0), mode="linear", out="masks")
-    outputs = [helper.make_tensor_value_info("masks", f, [b, 4, "H", "W"]),
-               helper.make_tensor_value_info("iou_predictions", f, [b, 4])]
+    outputs = [helper.make_tensor_value_info("masks", f, [b, m, "H", "W"]),
+               helper.make_tensor_value_info("iou_predictions", f, [b, m])]
     if low_res:
-        outputs.append(helper.make_tensor_value_info("low_res_masks", f, [b, 4, L, L]))
+        outputs.append(helper.make_tensor_value_info("low_res_masks", f, [b, m, L, L]))
     return g.save(path, inputs, outputs, "sam_decoder")
 
 

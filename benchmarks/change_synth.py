@@ -35,14 +35,14 @@ def render_paths(scene, n: int, supersample: int | None = None):
             for t, state in (("t0", "before"), ("t1", "after")):
                 r = scene.render(cam, state, supersample=supersample)
                 frames[(p, t, i)] = dict(rgb=r["rgb"], depth=r["depth"], camera=cam)
-                gt[(p, t, i)] = r["changed"]
+                gt[(p, t, i)] = r
     return frames, gt
 
 
 def evaluate(frames, gt, masks, use_depth=True):
     rows = []
     for (p, i), (m0, m1) in sorted(masks.items()):
-        g0, g1 = gt[(p, "t0", i)], gt[(p, "t1", i)]
+        g0, g1 = gt[(p, "t0", i)]["changed"], gt[(p, "t1", i)]["changed"]
         s = pixel_scores(m0 | m1, g0 | g1)
         s0, s1 = pixel_scores(m0, g0), pixel_scores(m1, g1)
         rows.append(dict(path=p, frame=i, method="gdiff", F1=s["F1"], IoU=s["IoU"],
@@ -51,6 +51,29 @@ def evaluate(frames, gt, masks, use_depth=True):
         sb = pixel_scores(pd_.mask, g0 | g1)
         rows.append(dict(path=p, frame=i, method="pixel_diff", F1=sb["F1"], IoU=sb["IoU"]))
     return rows
+
+
+def type_accuracy(scene, ids, gt, df):
+    """Per GT changed object: the types of the changed IDs covering most of it (any frame);
+    and the GT unchanged objects that a changed ID covers (false changes)."""
+    found, false = {}, set()
+    changed = set(df.loc[df["changed"], "id"])
+    typ = dict(zip(df["id"], df["type"]))
+    for key, m in ids.items():
+        g = gt[key]["ids"]
+        for oid in np.unique(g):
+            sel = g == oid
+            if oid == 0 or sel.sum() < 40:
+                continue
+            v, c = np.unique(m[sel], return_counts=True)
+            d = int(v[np.argmax(c)])
+            if d in changed:
+                if oid in scene.change_types:
+                    found.setdefault(int(oid), set()).add(typ[d])
+                else:
+                    false.add(int(oid))
+    ok = sum(t in found.get(o, set()) for o, t in scene.change_types.items())
+    return ok, len(scene.change_types), found, false
 
 
 def main(argv=None):
@@ -80,9 +103,10 @@ def main(argv=None):
             for r in rows:
                 r.update(preset=preset, seed=seed)
             all_rows += rows
-            ch = df[df["changed"]]
+            ok, n_gt, found, false = type_accuracy(scene, ids, gt, df)
             types.append(dict(preset=preset, seed=seed, gt=str(scene.change_types),
-                              found=", ".join(f"{r.id}:{r.type}" for r in ch.itertuples()),
+                              found=str(found), types_ok=f"{ok}/{n_gt}",
+                              false_objects=str(sorted(false)),
                               render_s=round(t_render, 1), run_s=round(t_run, 1)))
             res = pd.DataFrame(rows).groupby("method")[["F1", "IoU"]].mean()
             print(f"{preset} seed {seed}: " + "; ".join(

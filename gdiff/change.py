@@ -117,17 +117,21 @@ def appearance_change(rgb0: np.ndarray, rgb1: np.ndarray, chroma_tol: float,
                       ncc_min: float) -> np.ndarray:
     """bool [H, W]: illumination-invariant appearance differs between two images of one pose.
 
-    Changed where the grey-world-normalised chromaticity differs by more than ``chroma_tol``
-    (L1, confident pixels) or where the local structure of log intensity differs (local NCC
-    < ``ncc_min`` on textured pixels). Inputs sRGB float32 [H, W, 3].
+    On textured pixels (local std of log intensity > 0.1 in both images) the structure decides:
+    local normalised cross-correlation of log intensity (9 x 9) below ``ncc_min`` (a gain
+    change - shading, a shadow's interior, exposure - keeps the correlation). On untextured
+    pixels the grey-world-normalised chromaticity decides (L1 difference > ``chroma_tol``).
+    Inputs sRGB float32 [H, W, 3]. The log has a floor (+0.02) so sensor-level noise in dark
+    pixels is not texture.
     """
     c0, w0 = _normalised_chroma(rgb0)
     c1, w1 = _normalised_chroma(rgb1)
     dc = np.abs(c0 - c1).sum(-1) * np.minimum(w0, w1)
-    l0 = np.log(srgb_to_linear(rgb0).mean(-1) + 1e-3).astype(np.float32)
-    l1 = np.log(srgb_to_linear(rgb1).mean(-1) + 1e-3).astype(np.float32)
-    ncc, tex = _local_ncc(l0, l1)
-    return (dc > chroma_tol) | ((ncc < ncc_min) & (tex > 0.05))
+    l0 = np.log(srgb_to_linear(rgb0).mean(-1) + 0.02).astype(np.float32)
+    l1 = np.log(srgb_to_linear(rgb1).mean(-1) + 0.02).astype(np.float32)
+    ncc, tex = _local_ncc(l0, l1, 9)
+    textured = tex > 0.1
+    return np.where(textured, ncc < ncc_min, dc > chroma_tol)
 
 
 # ------------------------------------------------------------------------------------------

@@ -1,0 +1,170 @@
+"""The 4D Gaussian model: static 3D Gaussians + a deformation field over time t in [0, 1].
+
+API used by later stages::
+
+    from gdiff.splat.model import load_model
+    model = load_model("results/<scene>/fit/model.pt", device)   # GaussianModel4D (eval mode)
+    g = model.at_time(0.0)   # Gaussians: means [N,3], quats [N,4] wxyz, scales [N,3],
+                             # opacities [N], sh [N,K,3], sh_degree  (differentiable)
+
+``model.splats`` is an ``nn.ParameterDict`` of raw per-Gaussian parameters (names and shapes in
+:mod:`gdiff.splat.gaussians`); a later stage may add its own per-Gaussian entries (first
+dimension N), which densification carries along and :func:`save_model`/:func:`load_model`
+preserve. ``model.deformation`` is a :class:`~gdiff.splat.deform.Deformation` (or None for a
+static model); its deltas are applied only once ``model.deform_on`` is set (the fine phase).
+
+``model.pt`` holds ``{"format", "version", "config", "state_dict", "meta"}``: ``config``
+(SH degree, deformation architecture) + ``state_dict`` rebuild the module; ``meta`` holds
+facts about the fit (training intrinsics, scene extent, ...).
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import numpy as np
+import torch
+from torch import nn
+
+from ..errors import ModelFileError
+from ..io import atomic_path
+from .deform import DeformConfig, Deformation
+from .gaussians import Gaussians, init_params, num_sh_coeffs
+
+FORMAT = "gdiff.GaussianModel4D"
+VERSION = 1
+
+
+class GaussianModel4D(nn.Module):
+    """3D Gaussians deformed over time (see module docstring).
+
+    Args:
+        n: number of Gaussians (parameters start at neutral values; see :meth:`from_points`).
+        sh_degree: largest SH degree stored (K = (sh_degree+1)^2 coefficients).
+        deform: deformation architecture, or None for a static model.
+    """
+
+    def __init__(self, n: int = 0, sh_degree: int = 3,
+                 deform: DeformConfig | dict | None = None):
+        super().__init__()
+        self.sh_degree = int(sh_degree)
+        k = num_sh_coeffs(self.sh_degree)
+        quats = torch.zeros(n, 4)
+        quats[:, 0] = 1.0
+        self.splats = nn.ParameterDict({
+            "means": nn.Parameter(torch.zeros(n, 3)),
+            "scales": nn.Parameter(torch.full((n, 3), -4.0)),
+            "quats": nn.Parameter(quats),
+            "opacities": nn.Parameter(torch.zeros(n)),
+            "sh0": nn.Parameter(torch.zeros(n, 1, 3)),
+            "shN": nn.Parameter(torch.zeros(n, k - 1, 3)),
+        })
+        if isinstance(deform, dict):
+            deform = DeformConfig(**deform)
+        if deform is not None:
+            deform.sh_coeffs = k
+            self.deformation: Deformation | None = Deformation(deform)
+        else:
+            self.deformation = None
+        self.register_buffer("active_sh_degree", torch.tensor(0, dtype=torch.long))
+        self.register_buffer("deform_on", torch.tensor(False))
+
+    # ---------------------------------------------------------------- construction / config
+    @classmethod
+    def from_points(cls, xyz: np.ndarray, rgb: np.ndarray, sh_degree: int = 3,
+                    deform: DeformConfig | None = None, init_opacity: float = 0.1
+                    ) -> "GaussianModel4D":
+        """Gaussians at SfM points xyz [P, 3] with colours rgb [P, 3] in [0, 1]."""
+        params = init_params(xyz, rgb, sh_degree, init_opacity)
+        model = cls(len(xyz), sh_degree, deform)
+        with torch.no_grad():
+            for k, v in params.items():
+                model.splats[k].copy_(v)
+        return model
+
+    def config(self) -> dict:
+        """Small dict that, with :meth:`state_dict`, rebuilds the module."""
+        return {"sh_degree": self.sh_degree,
+                "deform": self.deformation.cfg.to_dict() if self.deformation else None}
+
+    @classmethod
+    def from_state(cls, config: dict, state_dict: dict) -> "GaussianModel4D":
+        """Rebuild from :meth:`config` and a state dict (any N, extra ``splats.*`` entries)."""
+        n = int(state_dict["splats.means"].shape[0])
+        model = cls(n, config["sh_degree"], config.get("deform"))
+        for key, v in state_dict.items():
+            if key.startswith("splats."):
+                name = key.split(".", 1)[1]
+                model.splats[name] = nn.Parameter(torch.empty_like(v))
+        model.load_state_dict(state_dict)
+        return model
+
+    def __len__(self) -> int:
+        return int(self.splats["means"].shape[0])
+
+    @property
+    def device(self) -> torch.device:
+        return self.splats["means"].device
+
+    @property
+    def deforming(self) -> bool:
+        return self.deformation is not None and bool(self.deform_on)
+
+    # ---------------------------------------------------------------- evaluation
+    def raw_at_time(self, t) -> dict[str, torch.Tensor]:
+        """Raw (unactivated) parameters at time t (float or 0-d tensor in [0, 1]):
+        means, scales (log), quats (unnormalised), opacities (logit), sh [N, K, 3]."""
+        s = self.splats
+        out = {"means": s["means"], "scales": s["scales"], "quats": s["quats"],
+               "opacities": s["opacities"], "sh": torch.cat([s["sh0"], s["shN"]], dim=1)}
+        if self.deforming and len(self):
+            for name, d in self.deformation(s["means"], t).items():
+                out[name] = out[name] + d
+        return out
+
+    def at_time(self, t) -> Gaussians:
+        """Deformed, activated Gaussians at time t (see :class:`Gaussians`); differentiable."""
+        r = self.raw_at_time(t)
+        q = r["quats"]
+        return Gaussians(means=r["means"],
+                         quats=q / q.norm(dim=-1, keepdim=True).clamp_min(1e-12),
+                         scales=torch.exp(r["scales"]),
+                         opacities=torch.sigmoid(r["opacities"]),
+                         sh=r["sh"], sh_degree=int(self.active_sh_degree))
+
+
+# -------------------------------------------------------------------- files
+
+
+def save_model(model: GaussianModel4D, path: str | os.PathLike, meta: dict | None = None) -> None:
+    """Write ``model.pt`` atomically (see module docstring for the layout)."""
+    blob = {"format": FORMAT, "version": VERSION, "config": model.config(),
+            "state_dict": {k: v.detach().cpu() for k, v in model.state_dict().items()},
+            "meta": meta or {}}
+    with atomic_path(path) as tmp:
+        torch.save(blob, tmp)
+
+
+def load_model(path: str | os.PathLike, device: torch.device | str = "cpu") -> GaussianModel4D:
+    """Load a ``model.pt`` written by :func:`save_model` onto ``device`` (eval mode).
+
+    The file's ``meta`` dict is available as ``model.meta``. Raises :class:`ModelFileError`
+    naming the file when it is missing or not a gdiff 4D Gaussian model.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise ModelFileError(f"{path}: model file not found; run the fit stage first")
+    try:
+        blob = torch.load(path, map_location="cpu", weights_only=True)
+    except Exception as e:  # torch raises several types for corrupt files
+        raise ModelFileError(f"{path}: cannot be read as a model file ({e}); "
+                             "delete it and rerun the fit stage") from None
+    if not isinstance(blob, dict) or blob.get("format") != FORMAT:
+        raise ModelFileError(f"{path}: not a gdiff 4D Gaussian model (no '{FORMAT}' header)")
+    if blob.get("version", 0) > VERSION:
+        raise ModelFileError(f"{path}: written by a newer gdiff (model version "
+                             f"{blob['version']} > {VERSION}); update gdiff")
+    model = GaussianModel4D.from_state(blob["config"], blob["state_dict"])
+    model.meta = blob.get("meta", {})
+    return model.to(device).eval()

@@ -1,0 +1,597 @@
+"""Fit one 4D Gaussian Splatting model to the before (t=0) and after (t=1) images.
+
+Workflow entry point::
+
+    from gdiff.splat.train import FitOptions, fit_scene
+    summary = fit_scene(scene_dir, "results/S/poses/cameras.json", "results/S/poses/points.ply",
+                        "results/S/fit", FitOptions(...), device="auto")
+
+Training (after Wu et al., CVPR 2024, "4D Gaussian Splatting"):
+
+1. Gaussians start at the SfM points (colour from the points, isotropic scale from the RMS
+   distance to the 3 nearest neighbours, opacity ``init_opacity``).
+2. Coarse phase (``coarse_iters``): static 3D Gaussians on all before and after images.
+3. Fine phase (``fine_iters``): the HexPlane deformation field is switched on (its box set to
+   the Gaussians' extent) and trained with the Gaussians; each image is rendered at its time.
+
+Each iteration renders one training image (random order, every image once per epoch) at the
+working resolution (``max_side``); loss = L1 + ``ssim_lambda`` (1 - SSIM) + grid regularisers
+(fine phase). 3DGS adaptive density control runs every ``densify_every`` iterations between
+``densify_from`` and ``densify_until`` (global iteration numbers), with thresholds scaled to
+the scene extent (camera spread); opacities are reset every ``opacity_reset_every``. The SH
+degree rises by one every ``sh_degree_interval`` iterations up to ``sh_degree``. The position
+learning rate decays exponentially over the whole run, the deformation's over the fine phase.
+
+Outputs in ``out_dir``: ``model.pt``, ``gaussians_t0.ply``, ``gaussians_t1.ply``,
+``train_log.csv`` (iteration, phase, loss terms, PSNR of the step's image, #Gaussians,
+seconds), ``quality.csv`` (per training image: PSNR, SSIM at the working resolution) and
+``ckpt/last.pt`` while training (everything needed to resume: parameters, optimiser state,
+densification statistics, RNG states, iteration, log rows; written atomically every
+``checkpoint_every`` iterations and removed after a successful fit). Rerunning after an
+interruption resumes from it when the options and inputs are unchanged.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import logging
+import math
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Callable
+
+import cv2
+import numpy as np
+import pandas as pd
+import torch
+
+from ..cameras import Camera, load_cameras
+from ..device import resolve_device
+from ..errors import SceneError, TrainingError
+from ..io import atomic_path, read_image, write_csv
+from ..log import progress
+from .deform import DeformConfig
+from .gaussians import DensifyStats, DensifyThresholds, camera_extent, refine, reset_opacity
+from .losses import l1, psnr, ssim
+from .model import GaussianModel4D, save_model
+from .ply import read_points, write_gaussians
+from .render import rasterize_gaussians
+
+log = logging.getLogger("gdiff.splat.train")
+
+TRAIN_SETS = ("before", "after")
+CKPT_FORMAT = "gdiff.fit-checkpoint"
+# options that do not change the result (a checkpoint stays valid when they change)
+_NON_RESULT_OPTIONS = ("checkpoint_every", "log_every", "keep_checkpoint")
+
+
+@dataclass
+class FitOptions:
+    """Options of the ``fit`` stage (config section ``fit``)."""
+
+    # schedule
+    coarse_iters: int = 1500  # static phase on all images
+    fine_iters: int = 4500  # phase with the deformation field
+    max_side: int = 320  # working resolution: longest image side in px (0 = native size)
+    seed: int = 0
+    # loss
+    ssim_lambda: float = 0.2  # loss = L1 + ssim_lambda * (1 - SSIM) + regularisers
+    plane_tv_weight: float = 0.0002  # TV of the HexPlane spatial planes
+    time_smooth_weight: float = 0.001  # 2nd difference along t (needs time_resolution >= 3)
+    time_l1_weight: float = 0.0001  # |1 - time plane|: prefer no change over time
+    background: str = "black"  # black | white | random (random colour per step)
+    # learning rates (means: x scene extent, exponential decay over the run)
+    lr_means: float = 1.6e-4
+    lr_means_final: float = 1.6e-6
+    lr_scales: float = 5e-3
+    lr_quats: float = 1e-3
+    lr_opacities: float = 5e-2
+    lr_sh0: float = 2.5e-3
+    lr_shN: float = 1.25e-4
+    lr_grid: float = 1.6e-3  # HexPlane planes (normalised coordinates), decays over fine phase
+    lr_grid_final: float = 1.6e-4
+    lr_deform: float = 1.6e-4  # deformation MLP (x scene extent), decays over fine phase
+    lr_deform_final: float = 1.6e-5
+    # spherical harmonics
+    sh_degree: int = 3
+    sh_degree_interval: int = 500  # raise the active degree every N iterations
+    # adaptive density control (iterations are global: coarse then fine)
+    init_opacity: float = 0.1
+    densify_from: int = 300
+    densify_until: int = 4500
+    densify_every: int = 100
+    opacity_reset_every: int = 1500  # 0 = never
+    grow_grad2d: float = 0.0002
+    grow_scale3d: float = 0.01  # x extent
+    prune_opacity: float = 0.005
+    prune_scale3d: float = 0.1  # x extent
+    prune_scale2d: float = 0.15  # x image size
+    max_gaussians: int = 300000
+    # deformation field
+    deform: bool = True
+    deform_position: bool = True
+    deform_scale: bool = True
+    deform_rotation: bool = True
+    deform_opacity: bool = True  # lighting / appearance differ between before and after
+    deform_color: bool = True
+    hexplane_resolution: list[int] = field(default_factory=lambda: [48, 48, 48])
+    hexplane_time_resolution: int = 2
+    hexplane_multires: list[int] = field(default_factory=lambda: [1, 2])
+    hexplane_features: int = 16
+    deform_width: int = 64
+    deform_depth: int = 1
+    # bookkeeping
+    checkpoint_every: int = 500
+    keep_checkpoint: bool = False
+    log_every: int = 10
+    backend: str = "auto"  # rasterizer backend: auto | torch | cpp | gsplat
+
+    def __post_init__(self):
+        for name in ("coarse_iters", "fine_iters", "max_side", "densify_every", "log_every",
+                     "checkpoint_every", "sh_degree_interval", "max_gaussians",
+                     "opacity_reset_every"):
+            if getattr(self, name) < 0:
+                raise ValueError(f"{name} must be >= 0, got {getattr(self, name)}")
+        if self.coarse_iters + self.fine_iters < 1:
+            raise ValueError("coarse_iters + fine_iters must be at least 1")
+        if not 0 <= self.sh_degree <= 3:
+            raise ValueError(f"sh_degree must be 0..3, got {self.sh_degree}")
+        if not 0.0 <= self.ssim_lambda <= 1.0:
+            raise ValueError(f"ssim_lambda must be in [0, 1], got {self.ssim_lambda}")
+        if self.background not in ("black", "white", "random"):
+            raise ValueError(f"background must be black, white or random, got {self.background!r}")
+        if self.hexplane_time_resolution < 2:
+            raise ValueError("hexplane_time_resolution must be >= 2")
+        if len(self.hexplane_resolution) != 3:
+            raise ValueError("hexplane_resolution needs 3 values (x, y, z)")
+
+    @property
+    def total_iters(self) -> int:
+        return self.coarse_iters + self.fine_iters
+
+    def deform_config(self) -> DeformConfig | None:
+        if not self.deform or self.fine_iters == 0:
+            return None
+        return DeformConfig(resolution=list(self.hexplane_resolution),
+                            time_resolution=self.hexplane_time_resolution,
+                            multires=list(self.hexplane_multires),
+                            features=self.hexplane_features, width=self.deform_width,
+                            depth=self.deform_depth, position=self.deform_position,
+                            scale=self.deform_scale, rotation=self.deform_rotation,
+                            opacity=self.deform_opacity, color=self.deform_color)
+
+    def thresholds(self) -> DensifyThresholds:
+        return DensifyThresholds(self.grow_grad2d, self.grow_scale3d, self.prune_opacity,
+                                 self.prune_scale3d, self.prune_scale2d, self.max_gaussians)
+
+
+# ------------------------------------------------------------------------------ data
+
+
+@dataclass
+class TrainView:
+    """One training image at the working resolution: image [H, W, 3] in [0, 1] (device)."""
+
+    camera: Camera
+    image: torch.Tensor
+    viewmat: torch.Tensor  # [1, 4, 4] world-to-camera
+    K: torch.Tensor  # [1, 3, 3]
+
+    @property
+    def time(self) -> float:
+        return float(self.camera.time)
+
+
+def working_scale(width: int, height: int, max_side: int) -> float:
+    """Factor that brings the longest side down to ``max_side`` (1 when already small)."""
+    if max_side <= 0 or max(width, height) <= max_side:
+        return 1.0
+    return max_side / float(max(width, height))
+
+
+def load_views(scene_dir: str | Path, cameras: list[Camera], max_side: int,
+               device: torch.device) -> list[TrainView]:
+    """Read the images of ``cameras`` (paths relative to ``scene_dir``) at the working size.
+
+    An image whose size differs from its camera's (same aspect) rescales the camera; a
+    different aspect ratio is a :class:`SceneError`.
+    """
+    views = []
+    for cam in cameras:
+        if not cam.image:
+            raise SceneError(f"camera of set {cam.set} has no image path in cameras.json")
+        path = Path(scene_dir) / cam.image
+        img = read_image(path)
+        h, w = img.shape[:2]
+        if (w, h) != (cam.width, cam.height):
+            if abs(w / h - cam.width / cam.height) > 0.01:
+                raise SceneError(f"{path}: image is {w}x{h} but cameras.json says "
+                                 f"{cam.width}x{cam.height}; rerun the poses stage")
+            cam = cam.scaled(w / cam.width)
+        s = working_scale(w, h, max_side)
+        if s != 1.0:
+            cam = cam.scaled(s)
+            img = cv2.resize(img, (cam.width, cam.height), interpolation=cv2.INTER_AREA)
+        t = lambda a: torch.tensor(a, dtype=torch.float32, device=device)[None]  # noqa: E731
+        views.append(TrainView(cam, torch.from_numpy(np.ascontiguousarray(img)).to(device),
+                               t(cam.w2c), t(cam.K)))
+    return views
+
+
+def _fingerprint(*paths: Path) -> str:
+    h = hashlib.sha1()
+    for p in paths:
+        h.update(Path(p).read_bytes())
+    return h.hexdigest()
+
+
+# ------------------------------------------------------------------------------ trainer
+
+
+def _exp_lr(step: int, n: int, lr0: float, lr1: float) -> float:
+    """Log-linear interpolation from lr0 (step 0) to lr1 (step n)."""
+    if n <= 0:
+        return lr1
+    a = min(max(step / n, 0.0), 1.0)
+    return math.exp((1 - a) * math.log(lr0) + a * math.log(lr1))
+
+
+class Trainer:
+    """Training state of one fit: model, optimiser, density statistics, RNG, log.
+
+    ``step()`` runs one iteration; ``state_dict()`` / ``load_state_dict()`` (de)serialise it
+    for checkpoints. The model and its densification can be reused by later stages.
+    """
+
+    def __init__(self, model: GaussianModel4D, views: list[TrainView], opts: FitOptions,
+                 extent: float):
+        self.model = model
+        self.views = views
+        self.opts = opts
+        self.extent = float(extent)
+        self.device = model.device
+        self.iteration = 0  # next iteration to run
+        self.optimizer = self._make_optimizer()
+        self.stats = DensifyStats(len(model), self.device)
+        self.gen = torch.Generator().manual_seed(opts.seed)
+        self.order = torch.randperm(len(views), generator=self.gen)
+        self.cursor = 0
+        self.rows: list[dict] = []
+        self.elapsed = 0.0
+        self.times = sorted({v.time for v in views})
+
+    # ---------------------------------------------------------------- optimiser
+    def _make_optimizer(self) -> torch.optim.Optimizer:
+        o, m = self.opts, self.model
+        lrs = {"means": o.lr_means * self.extent, "scales": o.lr_scales, "quats": o.lr_quats,
+               "opacities": o.lr_opacities, "sh0": o.lr_sh0, "shN": o.lr_shN}
+        groups = [{"params": [p], "lr": lrs.get(name, o.lr_sh0), "name": name}
+                  for name, p in m.splats.items()]
+        if m.deformation is not None:
+            groups.append({"params": m.deformation.grid_parameters(), "lr": o.lr_grid,
+                           "name": "grid"})
+            groups.append({"params": m.deformation.mlp_parameters(),
+                           "lr": o.lr_deform * self.extent, "name": "deform"})
+        return torch.optim.Adam(groups, lr=0.0, eps=1e-15)
+
+    def _set_lrs(self, it: int) -> None:
+        o = self.opts
+        fine_step = it - o.coarse_iters
+        for g in self.optimizer.param_groups:
+            if g["name"] == "means":
+                g["lr"] = _exp_lr(it, o.total_iters, o.lr_means * self.extent,
+                                  o.lr_means_final * self.extent)
+            elif g["name"] == "grid":
+                g["lr"] = _exp_lr(fine_step, o.fine_iters, o.lr_grid, o.lr_grid_final)
+            elif g["name"] == "deform":
+                g["lr"] = _exp_lr(fine_step, o.fine_iters, o.lr_deform * self.extent,
+                                  o.lr_deform_final * self.extent)
+
+    # ---------------------------------------------------------------- phases
+    def phase(self, it: int | None = None) -> str:
+        it = self.iteration if it is None else it
+        return "coarse" if it < self.opts.coarse_iters else "fine"
+
+    @torch.no_grad()
+    def start_fine(self) -> None:
+        """Switch the deformation on, with its box fitted to the current Gaussians."""
+        m = self.model
+        if m.deformation is None or bool(m.deform_on):
+            return
+        means = m.splats["means"].detach()
+        lo = torch.quantile(means, 0.005, dim=0) if len(means) > 1 else means.min(0).values
+        hi = torch.quantile(means, 0.995, dim=0) if len(means) > 1 else means.max(0).values
+        pad = 0.05 * (hi - lo).clamp_min(1e-3)
+        m.deformation.field.set_aabb(lo - pad, hi + pad)
+        m.deform_on.fill_(True)
+        log.info("fine phase: deformation on, box %s .. %s", lo.tolist(), hi.tolist())
+
+    def _next_view(self) -> TrainView:
+        if self.cursor >= len(self.order):
+            self.order = torch.randperm(len(self.views), generator=self.gen)
+            self.cursor = 0
+        v = self.views[int(self.order[self.cursor])]
+        self.cursor += 1
+        return v
+
+    def _background(self) -> torch.Tensor | None:
+        b = self.opts.background
+        if b == "black":
+            return None
+        if b == "white":
+            return torch.ones(3, device=self.device)
+        return torch.rand(3, generator=self.gen).to(self.device)
+
+    @torch.no_grad()
+    def effective_opacity_scale(self) -> tuple[torch.Tensor, torch.Tensor]:
+        """Largest opacity [N] and largest axis scale [N] over the training times."""
+        opa = scale = None
+        for t in self.times:
+            g = self.model.at_time(t)
+            o, s = g.opacities, g.scales.max(dim=-1).values
+            opa = o if opa is None else torch.maximum(opa, o)
+            scale = s if scale is None else torch.maximum(scale, s)
+        return opa, scale
+
+    # ---------------------------------------------------------------- one iteration
+    def step(self) -> dict:
+        o, m = self.opts, self.model
+        it = self.iteration
+        if it >= o.coarse_iters:
+            self.start_fine()
+        if o.sh_degree_interval and it > 0 and it % o.sh_degree_interval == 0:
+            if int(m.active_sh_degree) < min(o.sh_degree, m.sh_degree):
+                m.active_sh_degree += 1
+        self._set_lrs(it)
+        view = self._next_view()
+        g = m.at_time(view.time)
+        h, w = view.image.shape[:2]
+        colors, _, meta = rasterize_gaussians(g, view.viewmat, view.K, w, h, self._background(),
+                                              "RGB", o.backend)
+        means2d = meta["means2d"]
+        densify_now = o.densify_from <= it < o.densify_until and o.densify_every > 0
+        if densify_now and means2d.requires_grad:
+            means2d.retain_grad()
+        pred = colors[0]
+        loss_l1 = l1(pred, view.image)
+        loss_ssim = 1.0 - ssim(pred, view.image)
+        loss = loss_l1 + o.ssim_lambda * loss_ssim
+        terms = {}
+        if m.deforming:
+            terms = m.deformation.regularizers()
+            loss = loss + (o.plane_tv_weight * terms["plane_tv"]
+                           + o.time_smooth_weight * terms["time_smooth"]
+                           + o.time_l1_weight * terms["time_l1"])
+        if not torch.isfinite(loss):
+            raise FloatingPointError(f"loss is {float(loss)}")
+        loss.backward()
+        if densify_now and means2d.grad is not None:
+            self.stats.update(means2d.grad, meta["radii"], w, h)
+        self.optimizer.step()
+        self.optimizer.zero_grad(set_to_none=True)
+        self.iteration = it + 1
+        done = self.iteration
+        event = None
+        if densify_now and done % o.densify_every == 0 and done > o.densify_from:
+            event = refine(m.splats, self.optimizer, self.stats, o.thresholds(), self.extent,
+                           self.effective_opacity_scale,
+                           prune_large=o.opacity_reset_every > 0 and done > o.opacity_reset_every)
+        if o.opacity_reset_every and done % o.opacity_reset_every == 0 and done < o.densify_until:
+            reset_opacity(m.splats, self.optimizer, 2.0 * o.prune_opacity)
+        out = {"iteration": done, "phase": self.phase(it), "loss": float(loss.detach()),
+               "l1": float(loss_l1.detach()), "ssim": 1.0 - float(loss_ssim.detach()),
+               "psnr": float(psnr(pred.detach().clamp(0, 1), view.image)),
+               **{k: float(v.detach()) for k, v in terms.items()}, "n_gaussians": len(m)}
+        if event is not None:
+            out["densify"] = event
+        return out
+
+    # ---------------------------------------------------------------- checkpoints
+    def state_dict(self) -> dict:
+        return {
+            "format": CKPT_FORMAT,
+            "iteration": self.iteration,
+            "model_config": self.model.config(),
+            "model": {k: v.detach().clone() for k, v in self.model.state_dict().items()},
+            "optimizer": self.optimizer.state_dict(),
+            "densify": {k: v.clone() for k, v in self.stats.state_dict().items()},
+            "rng_torch": torch.get_rng_state(),
+            "rng_sampler": self.gen.get_state(),
+            "order": self.order.clone(),
+            "cursor": self.cursor,
+            "rows": list(self.rows),
+            "elapsed": self.elapsed,
+        }
+
+    def load_state_dict(self, st: dict) -> None:
+        self.model = GaussianModel4D.from_state(st["model_config"], st["model"]).to(self.device)
+        self.optimizer = self._make_optimizer()
+        self.optimizer.load_state_dict(st["optimizer"])
+        self.stats = DensifyStats(0, self.device)
+        self.stats.load_state_dict({k: v.to(self.device) for k, v in st["densify"].items()})
+        torch.set_rng_state(st["rng_torch"])
+        self.gen.set_state(st["rng_sampler"])
+        self.order = st["order"]
+        self.cursor = int(st["cursor"])
+        self.rows = list(st["rows"])
+        self.elapsed = float(st["elapsed"])
+        self.iteration = int(st["iteration"])
+
+
+def _params_finite(model: GaussianModel4D) -> bool:
+    return all(bool(torch.isfinite(p).all()) for p in model.parameters())
+
+
+def _options_key(opts: FitOptions) -> dict:
+    d = dataclasses.asdict(opts)
+    for k in _NON_RESULT_OPTIONS:
+        d.pop(k, None)
+    return d
+
+
+# ------------------------------------------------------------------------------ evaluation
+
+
+@torch.no_grad()
+def evaluate_views(model: GaussianModel4D, views: list[TrainView], backend: str = "auto"
+                   ) -> pd.DataFrame:
+    """PSNR / SSIM of every view rendered at its own time (images at the working size)."""
+    rows = []
+    cache: dict[float, object] = {}
+    for v in views:
+        if v.time not in cache:
+            cache[v.time] = model.at_time(v.time)
+        h, w = v.image.shape[:2]
+        c, _, _ = rasterize_gaussians(cache[v.time], v.viewmat, v.K, w, h, None, "RGB", backend)
+        pred = c[0].clamp(0, 1)
+        rows.append({"image": v.camera.image, "set": v.camera.set, "time": v.time,
+                     "psnr": float(psnr(pred, v.image)), "ssim": float(ssim(pred, v.image))})
+    return pd.DataFrame(rows, columns=["image", "set", "time", "psnr", "ssim"])
+
+
+# ------------------------------------------------------------------------------ entry point
+
+
+def fit_scene(scene_dir: str | Path, cameras_json: str | Path, points_ply: str | Path,
+              out_dir: str | Path, options: FitOptions | None = None, device="auto",
+              callback: Callable[[Trainer], None] | None = None) -> dict:
+    """Fit the 4D model of a scene and write the ``fit/`` outputs (see module docstring).
+
+    Args:
+        scene_dir: the scene folder (image paths in cameras.json are relative to it).
+        cameras_json: ``poses/cameras.json``; frames of sets before/after are trained on.
+        points_ply: ``poses/points.ply`` (x y z red green blue).
+        out_dir: ``results/<scene>/fit``.
+        options: :class:`FitOptions` (defaults when None).
+        device: "auto" | "cpu" | "cuda" | torch.device.
+        callback: called with the trainer after every iteration (progress hooks, tests).
+    Returns:
+        summary dict: iterations, n_gaussians, seconds, psnr_t0/ssim_t0/psnr_t1/ssim_t1 (mean
+        over training images), extent, resumed_from (iteration or 0), width, height.
+    Raises:
+        SceneError for unusable inputs; TrainingError when the loss becomes NaN/inf.
+    """
+    opts = options or FitOptions()
+    dev = resolve_device(device)
+    out = Path(out_dir)
+    scene_dir = Path(scene_dir)
+    cams = [c for c in load_cameras(cameras_json) if c.set in TRAIN_SETS]
+    for s in TRAIN_SETS:
+        if not any(c.set == s for c in cams):
+            raise SceneError(f"{cameras_json}: no registered '{s}' images; the fit needs both "
+                             "before and after images (check the poses stage)")
+    xyz, rgb = read_points(points_ply)
+    views = load_views(scene_dir, cams, opts.max_side, dev)
+    extent = camera_extent(np.stack([c.center for c in cams]))
+    torch.manual_seed(opts.seed)
+    model = GaussianModel4D.from_points(xyz, rgb, opts.sh_degree, opts.deform_config(),
+                                        opts.init_opacity).to(dev)
+    trainer = Trainer(model, views, opts, extent)
+    log.info("fit: %d images (%d before, %d after) at %dx%d, %d initial Gaussians, extent %.3f",
+             len(views), sum(c.set == "before" for c in cams), sum(c.set == "after" for c in cams),
+             views[0].image.shape[1], views[0].image.shape[0], len(model), extent)
+
+    ckpt = out / "ckpt" / "last.pt"
+    fingerprint = _fingerprint(Path(cameras_json), Path(points_ply))
+    key = _options_key(opts)
+    resumed = 0
+    if ckpt.is_file():
+        try:
+            st = torch.load(ckpt, map_location="cpu", weights_only=True)
+        except Exception as e:  # a checkpoint from a crash mid-write cannot exist (atomic)
+            log.warning("ignoring unreadable checkpoint %s (%s)", ckpt, e)
+            st = None
+        if st and st.get("format") == CKPT_FORMAT and st.get("fingerprint") == fingerprint \
+                and st.get("options") == key:
+            trainer.load_state_dict(st)
+            resumed = trainer.iteration
+            log.info("resuming from %s at iteration %d", ckpt, resumed)
+        elif st:
+            log.warning("checkpoint %s is from other options or inputs; starting afresh", ckpt)
+
+    def save_ckpt():
+        if not _params_finite(trainer.model):
+            raise FloatingPointError("parameters are not finite")
+        st = trainer.state_dict()
+        st["fingerprint"], st["options"] = fingerprint, key
+        with atomic_path(ckpt) as tmp:
+            torch.save(st, tmp)
+
+    total = opts.total_iters
+    bar = progress(total=total, initial=trainer.iteration, desc="fit")
+    last_ckpt = resumed
+    t_start = time.time() - trainer.elapsed
+    try:
+        while trainer.iteration < total:
+            try:
+                rec = trainer.step()
+            except FloatingPointError as e:
+                where = (f"the last good checkpoint is {ckpt} (iteration {last_ckpt}); lower the "
+                         "learning rates in config 'fit' or delete the checkpoint to restart"
+                         if last_ckpt else "no checkpoint was written yet")
+                raise TrainingError(f"fit diverged at iteration {trainer.iteration + 1} ({e}); "
+                                    f"{where}") from None
+            trainer.elapsed = time.time() - t_start
+            it = rec["iteration"]
+            if "densify" in rec:
+                log.debug("iteration %d: densify %s", it, rec["densify"])
+            if opts.log_every and (it % opts.log_every == 0 or it == total):
+                row = {k: v for k, v in rec.items() if k != "densify"}
+                row["seconds"] = round(trainer.elapsed, 2)
+                trainer.rows.append(row)
+                bar.set_postfix(loss=f"{rec['loss']:.4f}", psnr=f"{rec['psnr']:.1f}",
+                                n=rec["n_gaussians"], phase=rec["phase"], refresh=False)
+            bar.update(1)
+            if opts.checkpoint_every and it % opts.checkpoint_every == 0 and it < total:
+                try:
+                    save_ckpt()
+                except FloatingPointError as e:
+                    raise TrainingError(f"fit diverged by iteration {it} ({e}); the last good "
+                                        f"checkpoint is {ckpt} (iteration {last_ckpt})") from None
+                last_ckpt = it
+            if callback is not None:
+                callback(trainer)
+    finally:
+        bar.close()
+    model = trainer.model
+    if not _params_finite(model):
+        raise TrainingError(f"fit ended with non-finite parameters at iteration {total}; "
+                            f"the last good checkpoint is {ckpt} (iteration {last_ckpt})")
+    model.eval()
+    seconds = time.time() - t_start
+    quality = evaluate_views(model, views, opts.backend)
+    ref = cams[0]
+    meta = {"camera": {k: getattr(ref, k) for k in ("width", "height", "fx", "fy", "cx", "cy")},
+            "extent": extent, "iterations": trainer.iteration, "seconds": seconds,
+            "working_size": [int(views[0].image.shape[1]), int(views[0].image.shape[0])],
+            "options": dataclasses.asdict(opts)}
+    save_model(model, out / "model.pt", meta)
+    with torch.no_grad():
+        for t in (0, 1):
+            write_gaussians(out / f"gaussians_t{t}.ply", model.at_time(float(t)))
+    write_csv(out / "train_log.csv", pd.DataFrame(trainer.rows))
+    write_csv(out / "quality.csv", quality)
+    if ckpt.is_file() and not opts.keep_checkpoint:
+        ckpt.unlink()
+    summary = {"iterations": trainer.iteration, "n_gaussians": len(model),
+               "seconds": round(seconds, 2), "extent": extent, "resumed_from": resumed,
+               "width": meta["working_size"][0], "height": meta["working_size"][1]}
+    for t in (0, 1):
+        q = quality[quality["time"] == t]
+        summary[f"psnr_t{t}"] = float(q["psnr"].mean()) if len(q) else float("nan")
+        summary[f"ssim_t{t}"] = float(q["ssim"].mean()) if len(q) else float("nan")
+    log.info("fit done: %s", summary)
+    return summary
+
+
+def fit_options_from_config(section: dict | None) -> FitOptions:
+    """:class:`FitOptions` from the config section ``fit`` (unknown keys rejected)."""
+    from ..options import from_config
+
+    return from_config(FitOptions, section, "fit")
+
+
+__all__ = ["FitOptions", "fit_scene", "Trainer", "TrainView", "load_views", "evaluate_views",
+           "fit_options_from_config"]

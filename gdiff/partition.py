@@ -52,12 +52,12 @@ class PartitionOptions:
     knn_samples: int = 1000           # Gaussians sampled per L3d evaluation (m)
     l3d_every: int = 2                # evaluate L3d every this many iterations
     knn_refresh: int = 200            # rebuild the KD-tree of centres every this many L3d calls
-    lr_encoding: float = 0.0025       # Adam learning rate of the encodings
-    lr_head: float = 0.0005           # Adam learning rate of the 1x1 convolution
-    geometry_lr_scale: float = 0.1    # fit-stage learning rates are multiplied by this
-    lambda_tv: float | None = None    # TV weight; None = the fit stage's value
+    lr_encoding: float = 0.02         # Adam learning rate of the encodings
+    lr_head: float = 0.005            # Adam learning rate of the 1x1 convolution
+    geometry_lr_scale: float = 1.0    # x the fit stage's final learning rates (0 = freeze)
+    lambda_tv: float | None = None    # weight of the HexPlane TV; None = the fit stage's value
     threshold: float = 0.5            # probability above which a pixel / Gaussian is "changed"
-    max_side: int = 0                 # train at images downsized to this longest side (0 = full)
+    max_side: int | None = None       # longest image side for training; None = the fit's, 0 = full
     checkpoint_every: int = 500       # write a resumable checkpoint every this many steps
     log_every: int = 50               # rows of train_log.csv
     seed: int = 0
@@ -75,7 +75,7 @@ class PartitionOptions:
             raise ValueError("threshold must lie in (0, 1)")
         if self.lambda_2d < 0 or self.lambda_3d < 0:
             raise ValueError("lambda_2d and lambda_3d must be >= 0")
-        if self.max_side < 0:
+        if self.max_side is not None and self.max_side < 0:
             raise ValueError("max_side must be >= 0 (0 = full resolution)")
         if self.checkpoint_every < 1 or self.log_every < 1:
             raise ValueError("checkpoint_every and log_every must be >= 1")
@@ -491,14 +491,20 @@ def _load_mask(path, camera) -> np.ndarray:
 # --------------------------------------------------------------------------------------------
 # training
 
-# Learning rates of the fitted parameters (3D Gaussian splatting / 4D-GS defaults), multiplied
-# by ``PartitionOptions.geometry_lr_scale`` while the partition fine-tunes the model.
-_SPLAT_LR = {"means": 1.6e-4, "scales": 5e-3, "quats": 1e-3, "opacities": 5e-2,
-             "sh0": 2.5e-3, "shN": 2.5e-3 / 20}
-_GRID_LR, _MLP_LR = 1.6e-3, 1.6e-4
+def _fit_options(fit) -> dict:
+    """The fit stage's options as saved in ``model.meta`` (defaults of FitOptions if absent)."""
+    import dataclasses
+
+    from .splat.train import FitOptions
+
+    saved = (getattr(fit, "meta", None) or {}).get("options") or {}
+    base = dataclasses.asdict(FitOptions())
+    return {**base, **{k: v for k, v in saved.items() if k in base}}
 
 
 def _param_groups(pm: PartitionModel, opts: PartitionOptions, extent: float) -> list[dict]:
+    """Adam groups: encodings, conv, and (unless ``geometry_lr_scale`` is 0) the fitted
+    parameters at the fit stage's final learning rates x ``geometry_lr_scale``."""
     groups = [{"name": "encoding", "params": [pm.head.encoding], "lr": opts.lr_encoding},
               {"name": "conv", "params": list(pm.head.conv.parameters()), "lr": opts.lr_head}]
     s = opts.geometry_lr_scale
@@ -506,26 +512,35 @@ def _param_groups(pm: PartitionModel, opts: PartitionOptions, extent: float) -> 
     if s <= 0:
         fit.requires_grad_(False)
         return groups
+    fo = _fit_options(fit)
+    lrs = {"means": fo["lr_means_final"] * extent, "scales": fo["lr_scales"],
+           "quats": fo["lr_quats"], "opacities": fo["lr_opacities"], "sh0": fo["lr_sh0"],
+           "shN": fo["lr_shN"]}
     for name, p in fit.splats.items():
-        if name in _SPLAT_LR:
-            lr = _SPLAT_LR[name] * (extent if name == "means" else 1.0)
-            groups.append({"name": name, "params": [p], "lr": lr * s})
+        if name in lrs:
+            groups.append({"name": name, "params": [p], "lr": lrs[name] * s})
         else:
             p.requires_grad_(False)
     if fit.deformation is not None:
         groups.append({"name": "grid", "params": fit.deformation.grid_parameters(),
-                       "lr": _GRID_LR * extent * s})
-        groups.append({"name": "mlp", "params": fit.deformation.mlp_parameters(),
-                       "lr": _MLP_LR * extent * s})
+                       "lr": fo["lr_grid_final"] * s})
+        groups.append({"name": "deform", "params": fit.deformation.mlp_parameters(),
+                       "lr": fo["lr_deform_final"] * extent * s})
     return groups
 
 
-def _tv_loss(pm: PartitionModel) -> torch.Tensor:
-    """Total variation of the deformation's feature planes (0 for a static model)."""
+def _tv_loss(pm: PartitionModel, lambda_tv: float | None) -> torch.Tensor:
+    """L_TV: the fit stage's grid regularisers of the deformation field (HexPlane TV, time
+    smoothness, time L1) with its weights; ``lambda_tv`` overrides the TV weight. 0 for a
+    static model."""
     d = pm.fit.deformation
     if d is None or not pm.fit.deforming:
         return pm.background.new_zeros(())
-    return d.regularizers()["plane_tv"]
+    fo = _fit_options(pm.fit)
+    r = d.regularizers()
+    w_tv = fo["plane_tv_weight"] if lambda_tv is None else lambda_tv
+    return (w_tv * r["plane_tv"] + fo["time_smooth_weight"] * r["time_smooth"]
+            + fo["time_l1_weight"] * r["time_l1"])
 
 
 def _latest_checkpoint(ckdir):
@@ -556,7 +571,7 @@ def _view_rng(seed: int, it: int, purpose: int) -> np.random.Generator:
 
 def fine_tune(pm: PartitionModel, data: list[dict], opts: PartitionOptions, ckdir=None,
               extent: float = 1.0) -> list[dict]:
-    """Optimise ``pm`` on ``data``: L = L1 + lambda_tv L_TV + lambda_2d BCE + lambda_3d L3d.
+    """Optimise ``pm`` on ``data``: L = L1 + L_TV + lambda_2d BCE + lambda_3d L3d.
 
     Args:
         pm: the model (modified in place; its device is used).
@@ -579,7 +594,6 @@ def fine_tune(pm: PartitionModel, data: list[dict], opts: PartitionOptions, ckdi
 
     if not data:
         raise ValueError("no training views")
-    lam_tv = 2e-4 if opts.lambda_tv is None else opts.lambda_tv
     index = NeighbourIndex(opts.knn_k, opts.knn_samples, opts.knn_refresh, opts.seed)
     start, rows = 0, []
     ck = _latest_checkpoint(ckdir) if ckdir is not None else None
@@ -605,27 +619,27 @@ def fine_tune(pm: PartitionModel, data: list[dict], opts: PartitionOptions, ckdi
         g = pm.fit.at_time(float(v["time"]))
         r = render_features(g, pm.head.encoding, v["camera"], pm.background, with_rgb=True)
         loss_l1 = l1(r["rgb"], v["image"])
-        loss_tv = _tv_loss(pm)
+        loss_tv = _tv_loss(pm, opts.lambda_tv)
         loss_bce = mask_bce(pm.head.classify(r["features"]), v["target"])
-        loss = loss_l1 + lam_tv * loss_tv + opts.lambda_2d * loss_bce
+        loss = loss_l1 + loss_tv + opts.lambda_2d * loss_bce
         if opts.lambda_3d > 0 and it % opts.l3d_every == 0:
             s, nb = index.sample(g.means, rng=_view_rng(opts.seed, it, 1))
             loss_3d = neighbour_kl(pm.head.gaussian_logits(), s, nb)
             loss = loss + opts.lambda_3d * loss_3d
-            acc["l3d"] += float(loss_3d)
+            acc["l3d"] += loss_3d.item()
             acc["n3d"] += 1
         if not torch.isfinite(loss):
             raise TrainingError(
-                f"partition training diverged: loss is {float(loss)} at iteration {it} "
-                f"(L1 {float(loss_l1):.4g}, BCE {float(loss_bce):.4g}); last checkpoint: "
+                f"partition training diverged: loss is {loss.item()} at iteration {it} "
+                f"(L1 {loss_l1.item():.4g}, BCE {loss_bce.item():.4g}); last checkpoint: "
                 f"{last_ck}. Lower partition.lr_encoding / lr_head / geometry_lr_scale and "
                 "rerun (training resumes from the checkpoint)")
         opt.zero_grad(set_to_none=True)
         loss.backward()
         opt.step()
-        acc["l1"] += float(loss_l1)
-        acc["tv"] += float(loss_tv)
-        acc["bce"] += float(loss_bce)
+        acc["l1"] += loss_l1.item()
+        acc["tv"] += loss_tv.item()
+        acc["bce"] += loss_bce.item()
         done = it + 1
         if done % opts.log_every == 0 or done == opts.iterations:
             n = done - (rows[-1]["iteration"] if rows else 0)
@@ -673,6 +687,7 @@ def train_partition(fit_model_path, cameras_json, keyframes_csv, scene_dir, out_
 
     import pandas as pd
 
+    from .cameras import Camera
     from .device import resolve_device
     from .io import write_csv, write_json
     from .splat.gaussians import camera_extent
@@ -684,15 +699,18 @@ def train_partition(fit_model_path, cameras_json, keyframes_csv, scene_dir, out_
     t_start = _time.perf_counter()
     torch.manual_seed(opts.seed)
     fit = load_model(fit_model_path, dev)
-    views = read_key_views(keyframes_csv, cameras_json, scene_dir, opts.max_side)
+    fo = _fit_options(fit)
+    max_side = fo["max_side"] if opts.max_side is None else opts.max_side
+    views = read_key_views(keyframes_csv, cameras_json, scene_dir, max_side)
     data = [{"camera": v.camera, "time": v.time,
              "image": torch.from_numpy(_load_image(v.image, v.camera)).to(dev),
              "target": torch.from_numpy(_load_mask(v.target, v.camera)).to(dev)} for v in views]
     head = ChangeHead(len(fit), opts.encoding_dim, opts.seed)
-    bg = fit.meta.get("background") if isinstance(getattr(fit, "meta", None), dict) else None
-    pm = PartitionModel(fit, head, views[0].camera.with_pose(np.eye(4)), bg,
-                        opts.threshold).to(dev)
-    extent = float(fit.meta.get("extent") or camera_extent(
+    bg = [1.0, 1.0, 1.0] if fo["background"] == "white" else None  # random/black: black
+    meta = getattr(fit, "meta", None) or {}
+    cam0 = Camera(**meta["camera"]) if "camera" in meta else views[0].camera.with_pose(np.eye(4))
+    pm = PartitionModel(fit, head, cam0, bg, opts.threshold).to(dev)
+    extent = float(meta.get("extent") or camera_extent(
         np.stack([v.camera.center for v in views])))
     log.info("partition: %d Gaussians, %d key views, %d iterations on %s", len(fit), len(views),
              opts.iterations, dev)

@@ -117,3 +117,111 @@ def test_options_validate():
     with pytest.raises(ValueError):
         PartitionOptions(knn_k=0)
     assert PartitionOptions().encoding_dim == 16
+
+
+# --------------------------------------------------------------------------- hand-made Gaussians
+
+def _static_model(means, colors, opacity=0.9, scale=0.05):
+    """A static (no deformation) GaussianModel4D with isotropic Gaussians of SH degree 0."""
+    from gdiff.splat.gaussians import rgb_to_sh0
+    from gdiff.splat.model import GaussianModel4D
+
+    means = torch.as_tensor(means, dtype=torch.float32)
+    n = len(means)
+    m = GaussianModel4D(n, sh_degree=0, deform=None)
+    with torch.no_grad():
+        m.splats["means"].copy_(means)
+        m.splats["scales"].fill_(np.log(scale))
+        m.splats["opacities"].fill_(float(np.log(opacity / (1 - opacity))))
+        m.splats["sh0"].copy_(rgb_to_sh0(torch.as_tensor(colors, dtype=torch.float32))[:, None])
+    m.meta = {}
+    return m
+
+
+def _front_camera(w=40, h=30):
+    from gdiff.cameras import Camera, look_at
+
+    return Camera(w, h, 40.0, 40.0, w / 2, h / 2, look_at([0, -2.0, 0], [0, 0, 0]))
+
+
+def test_features_are_alpha_blended_without_background_and_match_colour_render():
+    from gdiff.partition import render_features
+    from gdiff.splat.render import render
+
+    model = _static_model([[0.0, 0.0, 0.0]], [[0.2, 0.6, 0.4]], opacity=0.9, scale=0.1)
+    cam = _front_camera()
+    enc = torch.tensor([[1.0, -2.0, 3.0, 0.5]])
+    with torch.no_grad():
+        out = render_features(model.at_time(0.0), enc, cam, background=torch.ones(3))
+        ref = render(model, [cam], 0.0, background=torch.ones(3), render_mode="RGB")["rgb"][0]
+    a = out["alpha"]
+    # F = alpha * e for a single Gaussian; no background term in the features
+    np.testing.assert_allclose(out["features"], a[..., None] * enc[0], atol=1e-5)
+    assert a[0, 0] == 0 and out["features"][0, 0].abs().max() == 0
+    assert 0.8 < a[15, 20] <= 0.9 + 1e-6  # opacity 0.9, half a pixel off the centre
+    # the colour channels are what the fit stage's renderer produces
+    np.testing.assert_allclose(out["rgb"], ref, atol=1e-5)
+
+
+def test_change_map_union_split_and_save_load(tmp_path):
+    """Two Gaussians labelled changed / unchanged by hand: the union map, per-time maps, the
+    PLY split and a save/load round trip."""
+    from gdiff.partition import (PartitionModel, load_partition_model, render_change_map,
+                                 save_partition_model, split_gaussians, write_split_ply)
+    from gdiff.splat.ply import read_gaussians
+
+    model = _static_model([[-0.3, 0.0, 0.0], [0.3, 0.0, 0.0]], [[1, 0, 0], [0, 0, 1]])
+    head = ChangeHead(2, 16)
+    with torch.no_grad():  # encoding 0 -> unchanged, encoding 1 -> changed
+        head.encoding.zero_()
+        head.encoding[1, 0] = 1.0
+        head.conv.weight.zero_()
+        head.conv.bias.copy_(torch.tensor([2.0, -2.0]))
+        head.conv.weight[1, 0] = 8.0
+    cam = _front_camera()
+    pm = PartitionModel(model, head, cam, threshold=0.5)
+    r = render_change_map(pm, cam, None, with_image=True)
+    assert r["prob"].shape == (30, 40) and r["prob"].dtype == np.float32
+    np.testing.assert_array_equal(r["prob"], np.maximum(r["prob_t0"], r["prob_t1"]))
+    # the right Gaussian (+x = image right) is the changed one
+    assert r["mask"][15, 26] and not r["mask"][15, 14] and not r["mask"][0, 0]
+    r0 = render_change_map(pm, cam, 0.0)
+    assert r0["prob_t1"] is None and np.array_equal(r0["mask"], r["mask"])
+    changed, unchanged = split_gaussians(pm, 0.0)
+    assert len(changed) == 1 and len(unchanged) == 1
+    assert changed.means[0, 0] > 0
+    counts = write_split_ply(pm, tmp_path)
+    assert counts["n_changed"] == 2 and counts["n_unchanged"] == 1  # changed at t=0 and t=1
+    g = read_gaussians(tmp_path / "changed_t0.ply")
+    np.testing.assert_allclose(g.means.numpy(), [[0.3, 0.0, 0.0]], atol=1e-6)
+    save_partition_model(pm, tmp_path / "model.pt")
+    pm2 = load_partition_model(tmp_path / "model.pt", "cpu")
+    r2 = render_change_map(pm2, cam, None)
+    np.testing.assert_allclose(r2["prob"], r["prob"], atol=1e-6)
+
+
+def test_load_partition_model_errors(tmp_path):
+    from gdiff.errors import ModelFileError
+    from gdiff.partition import load_partition_model
+    from gdiff.splat.model import save_model
+
+    with pytest.raises(ModelFileError, match="not found"):
+        load_partition_model(tmp_path / "nope.pt", "cpu")
+    save_model(_static_model([[0, 0, 0]], [[1, 1, 1]]), tmp_path / "fit.pt")
+    with pytest.raises(ModelFileError, match="fit-stage model"):
+        load_partition_model(tmp_path / "fit.pt", "cpu")
+
+
+def test_divergence_raises_training_error_naming_iteration(tmp_path):
+    from gdiff.errors import TrainingError
+    from gdiff.partition import PartitionModel, fine_tune
+
+    model = _static_model([[-0.3, 0, 0], [0.3, 0, 0]], [[1, 0, 0], [0, 0, 1]])
+    cam = _front_camera()
+    pm = PartitionModel(model, ChangeHead(2, 16), cam)
+    data = [{"camera": cam, "time": 0, "image": torch.zeros(30, 40, 3),
+             "target": torch.zeros(30, 40)}]
+    with torch.no_grad():
+        pm.head.encoding[0, 0] = float("nan")
+    with pytest.raises(TrainingError, match="iteration 0"):
+        fine_tune(pm, data, PartitionOptions(iterations=3, knn_k=1, knn_samples=2), tmp_path)

@@ -153,6 +153,7 @@ class Embedding:
     orig_size: tuple[int, int]
     resized_size: tuple[int, int]
     feeds: dict = field(default_factory=dict, repr=False)  # decoder inputs that do not change
+    grid: Any = field(default=None, repr=False)  # low-res -> image sampling grid (cached)
 
 
 @dataclass
@@ -383,23 +384,32 @@ class SamOnnxModel:
         dtype = _NP_TYPES.get(self._dec_in[name].type, np.float32)
         return np.ascontiguousarray(value, dtype=dtype)
 
-    def predict(self, emb: Embedding, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Masks for single foreground point prompts.
+    def predict(self, emb: Embedding,
+                points: np.ndarray) -> tuple[np.ndarray, np.ndarray, bool]:
+        """Masks for single foreground point prompts, before mapping to the image.
 
         ``points``: [B, 2] (x, y) in pixels of the embedded image. Returns mask logits float32
-        [B, M, h, w] at the embedded image's size and predicted IoUs float32 [B, M], with M the
-        multi-mask outputs (3 for SAM/MobileSAM/EfficientSAM exports; 1 for single-mask ones).
+        [B, M, a, b], predicted IoUs float32 [B, M] and ``lowres``: True when the logits are
+        SAM's low-resolution grid over the S x S frame (map them with :meth:`to_image`), False
+        when they are already at the embedded image's size. M is the number of multi-mask
+        outputs (3 for SAM/MobileSAM/EfficientSAM; 1 for single-mask exports).
         """
         points = np.asarray(points, dtype=np.float64).reshape(-1, 2)
-        step = len(points) if self.batched else 1
-        logits, ious = [], []
-        for i in range(0, len(points), max(step, 1)):
-            chunk = points[i:i + step]
-            run = self._run_sam if self.variant == "sam" else self._run_efficientsam
-            lg, iou = run(emb, chunk)
-            logits.append(lg)
-            ious.append(iou)
-        return np.concatenate(logits), np.concatenate(ious)
+        step = max(len(points) if self.batched else 1, 1)
+        run = self._run_sam if self.variant == "sam" else self._run_efficientsam
+        parts = [run(emb, points[i:i + step]) for i in range(0, len(points), step)]
+        lowres = parts[0][2]
+        return (np.concatenate([p[0] for p in parts]), np.concatenate([p[1] for p in parts]),
+                lowres)
+
+    def to_image(self, emb: Embedding, logits: np.ndarray, lowres: bool) -> np.ndarray:
+        """Logits [K, a, b] from :meth:`predict` -> float32 [K, h, w] at the embedded image."""
+        if not lowres:
+            return logits.astype(np.float32, copy=False)
+        if emb.grid is None:
+            emb.grid = lowres_grid(emb.resized_size, self.image_size, emb.orig_size)
+        return lowres_to_image(logits, emb.resized_size, self.image_size, emb.orig_size,
+                               grid=emb.grid)
 
     def _run(self, feeds: dict[str, np.ndarray]) -> list[np.ndarray]:
         try:
@@ -409,7 +419,7 @@ class SamOnnxModel:
                                  f"{ {k: list(v.shape) for k, v in feeds.items()} } "
                                  f"({_first_line(e)})") from None
 
-    def _run_sam(self, emb: Embedding, pts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def _run_sam(self, emb: Embedding, pts: np.ndarray) -> tuple[np.ndarray, np.ndarray, bool]:
         b = len(pts)
         (h, w), (rh, rw) = emb.orig_size, emb.resized_size
         coords = np.zeros((b, 2, 2))
@@ -428,10 +438,9 @@ class SamOnnxModel:
         out = self._run(feeds)
         iou = np.asarray(out[self._iou_idx], dtype=np.float32).reshape(b, -1)
         low = out[self._low_idx] if self._low_idx is not None else None
-        if low is not None and low.ndim == 4 and low.shape[:2] == (b, iou.shape[1]):
-            logits = lowres_to_image(low.reshape(-1, *low.shape[2:]), emb.resized_size,
-                                     self.image_size, emb.orig_size)
-            logits = logits.reshape(b, -1, h, w)
+        lowres = low is not None and low.ndim == 4 and low.shape[:2] == (b, iou.shape[1])
+        if lowres:
+            logits = np.asarray(low, dtype=np.float32)
         else:
             masks = np.asarray(out[self._mask_idx], dtype=np.float32)
             if masks.ndim != 4 or masks.shape[0] != b:
@@ -440,9 +449,10 @@ class SamOnnxModel:
             logits = resize_logits(masks, (h, w))
         if iou.shape[1] == 4:  # SAM's token 0 is the single-mask output: keep the multimask 1..3
             iou, logits = iou[:, 1:], logits[:, 1:]
-        return logits, iou
+        return logits, iou, lowres
 
-    def _run_efficientsam(self, emb: Embedding, pts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def _run_efficientsam(self, emb: Embedding,
+                          pts: np.ndarray) -> tuple[np.ndarray, np.ndarray, bool]:
         b = len(pts)
         h, w = emb.orig_size
         if not emb.feeds:
@@ -458,35 +468,45 @@ class SamOnnxModel:
         if masks.ndim != 5 or masks.shape[:2] != (1, b):
             raise ModelFileError(f"{self.decoder_path}: output masks has shape "
                                  f"{list(masks.shape)}; expected [1, {b}, 3, {h}, {w}]")
-        return resize_logits(masks[0], (h, w)), iou.reshape(b, -1)
+        return resize_logits(masks[0], (h, w)), iou.reshape(b, -1), False
+
+
+def lowres_grid(resized_size: tuple[int, int], image_size: int, orig_size: tuple[int, int]):
+    """Sampling grid (torch float32 [h, w, 2], grid_sample's [-1, 1], align_corners=False) that
+    puts each original pixel centre into SAM's S x S frame, where the image occupies the
+    top-left ``resized_size`` (h', w')."""
+    import torch
+
+    (h, w), (rh, rw) = orig_size, resized_size
+    gx = (torch.arange(w, dtype=torch.float32) + 0.5) * (rw / w) * (2.0 / image_size) - 1.0
+    gy = (torch.arange(h, dtype=torch.float32) + 0.5) * (rh / h) * (2.0 / image_size) - 1.0
+    return torch.stack(torch.meshgrid(gx, gy, indexing="xy"), dim=-1)
 
 
 def lowres_to_image(low: np.ndarray, resized_size: tuple[int, int], image_size: int,
-                    orig_size: tuple[int, int]) -> np.ndarray:
+                    orig_size: tuple[int, int], grid=None) -> np.ndarray:
     """Map SAM low-resolution logits to the original image.
 
     ``low``: float [K, L, L] logits over the model's S x S frame (L = S / 4); the image occupies
     the top-left ``resized_size`` (h', w') of that frame. Returns float32 [K, h, w]: one bilinear
     resampling at the original pixel centres (undoes the padding and the resize in one step;
-    edge values are repeated outside the grid).
+    edge values are repeated outside the grid). ``grid``: :func:`lowres_grid`, if precomputed.
     """
     import torch
     import torch.nn.functional as F
 
+    h, w = orig_size
+    if grid is None:
+        grid = lowres_grid(resized_size, image_size, orig_size)
     low_t = torch.from_numpy(np.ascontiguousarray(low, dtype=np.float32))
-    (h, w), (rh, rw) = orig_size, resized_size
     n = low_t.shape[-1]
-    # original pixel centre -> S-frame position -> grid_sample's [-1, 1] (align_corners=False)
-    gx = (torch.arange(w, dtype=torch.float32) + 0.5) * (rw / w) * (2.0 / image_size) - 1.0
-    gy = (torch.arange(h, dtype=torch.float32) + 0.5) * (rh / h) * (2.0 / image_size) - 1.0
-    grid = torch.stack(torch.meshgrid(gx, gy, indexing="xy"), dim=-1)  # [h, w, 2] (x, y)
-    out = []
+    out = np.empty((low_t.shape[0], h, w), dtype=np.float32)
     for k in range(0, low_t.shape[0], 256):
-        chunk = low_t[k:k + 256, None].reshape(-1, 1, n, n)
+        chunk = low_t[k:k + 256].reshape(-1, 1, n, n)
         g = grid.expand(chunk.shape[0], h, w, 2)
-        out.append(F.grid_sample(chunk, g, mode="bilinear", padding_mode="border",
-                                 align_corners=False)[:, 0])
-    return torch.cat(out).numpy()
+        out[k:k + 256] = F.grid_sample(chunk, g, mode="bilinear", padding_mode="border",
+                                       align_corners=False)[:, 0].numpy()
+    return out
 
 
 def resize_logits(masks: np.ndarray, size: tuple[int, int]) -> np.ndarray:
@@ -624,21 +644,22 @@ class SamOnnxSegmenter:
         acc = _Batch()
         for i in range(0, len(points), o.points_per_batch):
             pts = points[i:i + o.points_per_batch]
-            logits, iou = self.model.predict(emb, pts)  # [B, M, ch, cw], [B, M]
-            m = logits.shape[1]
-            logits = logits.reshape(-1, ch, cw)
+            raw, iou, lowres = self.model.predict(emb, pts)  # [B, M, a, b], [B, M]
+            m = raw.shape[1]
+            raw = raw.reshape(-1, *raw.shape[2:])
             iou = iou.reshape(-1)
             pts_rep = np.repeat(pts, m, axis=0)
             stats["candidates"] += len(iou)
             keep = iou > o.pred_iou_thresh if o.pred_iou_thresh > 0 else np.ones(len(iou), bool)
             stats["after_iou"] += int(keep.sum())
-            stab = np.zeros(len(iou), dtype=np.float32)
-            stab[keep] = stability_score(logits[keep], 0.0, o.stability_score_offset)
-            if o.stability_score_thresh > 0:
-                keep &= stab >= o.stability_score_thresh
-            stats["after_stability"] += int(keep.sum())
             idx = np.flatnonzero(keep)
-            masks = logits[idx] > 0.0
+            logits = self.model.to_image(emb, raw[idx], lowres)  # [k, ch, cw]
+            stab = stability_score(logits, 0.0, o.stability_score_offset)
+            sel = stab >= o.stability_score_thresh if o.stability_score_thresh > 0 else \
+                np.ones(len(idx), bool)
+            stats["after_stability"] += int(sel.sum())
+            masks = logits[sel] > 0.0
+            idx, stab = idx[sel], stab[sel]
             bxs = mask_boxes(masks) + np.array([x0, y0, x0, y0])
             ok = masks.reshape(len(idx), -1).any(axis=1)
             if not is_full:
@@ -648,7 +669,7 @@ class SamOnnxSegmenter:
                 acc.masks.append(masks[j])
                 acc.boxes.append(bxs[j])
                 acc.iou.append(float(iou[idx[j]]))
-                acc.stab.append(float(stab[idx[j]]))
+                acc.stab.append(float(stab[j]))
                 acc.points.append(pts_rep[idx[j]] + np.array([x0, y0]))
         if not acc.masks:
             return []

@@ -17,16 +17,15 @@ from .scene import ROOM_FACES, SynthScene
 from .shapes import SHAPES, random_shape
 from .textures import OBJECT_TEXTURES
 
+
 def _random_color(rng, sat=(0.45, 0.9), val=(0.45, 0.92)) -> list[float]:
     """A random sRGB colour from HSV ranges."""
-
     h = rng.uniform()
     return list(colorsys.hsv_to_rgb(h, rng.uniform(*sat), rng.uniform(*val)))
 
 
 def _contrast_pair(rng) -> list[list[float]]:
     """Two colours of clearly different hue and value."""
-
     h = rng.uniform()
     c0 = colorsys.hsv_to_rgb(h, rng.uniform(0.5, 0.9), rng.uniform(0.25, 0.45))
     c1 = colorsys.hsv_to_rgb((h + rng.uniform(0.25, 0.75)) % 1, rng.uniform(0.2, 0.7),
@@ -35,6 +34,7 @@ def _contrast_pair(rng) -> list[list[float]]:
 
 
 def _object_texture(rng, kind: str, shape) -> dict:
+    """Random parameters (palette, scale, seed, axis) of object texture ``kind``."""
     seed = int(rng.integers(0, 2 ** 31))
     pal = _contrast_pair(rng) + [_random_color(rng) for _ in range(2)]
     axis = rng.normal(size=3)
@@ -54,6 +54,7 @@ def _object_texture(rng, kind: str, shape) -> dict:
 
 
 def _room_textures(rng) -> dict[str, tuple[str, dict]]:
+    """Textures of the floor, ceiling, walls (bricks and tiles in random order) and table."""
     def pal(n, val=(0.35, 0.92)):
         return [_random_color(rng, sat=(0.25, 0.85), val=val) for _ in range(n)]
 
@@ -80,6 +81,8 @@ def _room_textures(rng) -> dict[str, tuple[str, dict]]:
 
 
 def _lighting(rng, mode: str) -> dict[str, Lighting]:
+    """Lighting of both states: ``uniform`` (identical) or ``change`` (the sun moves and
+    changes colour and strength; ambient changes)."""
     if mode == "uniform":
         sun = Sun(azimuth=float(rng.uniform(0, 360)), elevation=float(rng.uniform(62, 75)),
                   color=kelvin_rgb(6000), strength=0.9, angle_deg=20.0)
@@ -108,7 +111,6 @@ class _PlacementFailed(Exception):
 
 class _Placer:
     """Rejection sampling of non-overlapping object footprints on the table top."""
-
     def __init__(self, rng, preset: SynthPreset, gap: float = 0.06):
         self.rng = rng
         self.hx, self.hy = preset.table_half_size

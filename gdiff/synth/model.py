@@ -23,7 +23,6 @@ def check_state(state: str) -> None:
 @dataclass(frozen=True)
 class Pose2D:
     """Placement of an object on the table: centre (x, y) in metres, rotation about z (rad)."""
-
     x: float
     y: float
     rot_z: float
@@ -77,7 +76,6 @@ class Sun:
 @dataclass(frozen=True)
 class Lighting:
     """Ambient (linear RGB colour x strength, brighter for up-facing surfaces) and suns."""
-
     ambient_color: tuple[float, float, float]
     ambient: float
     suns: tuple[Sun, ...]

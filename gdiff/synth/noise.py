@@ -54,7 +54,8 @@ def value_noise(p: np.ndarray, seed: int) -> np.ndarray:
         for dy in (0, 1):
             oxy = ox + (j[:, 1] if dy else i[:, 1]) * sy
             wxy = wx * (u[:, 1] if dy else 1.0 - u[:, 1])
-            out += wxy * ((1.0 - u[:, 2]) * tab.take(oxy + i[:, 2]) + u[:, 2] * tab.take(oxy + j[:, 2]))
+            out += wxy * ((1.0 - u[:, 2]) * tab.take(oxy + i[:, 2])
+                          + u[:, 2] * tab.take(oxy + j[:, 2]))
     return out
 
 

@@ -354,7 +354,6 @@ class SynthScene:
 
 class _RayCull:
     """Cheap bounding-sphere culling for a batch of rays ``o``, ``d`` [N, 3] (unit ``d``)."""
-
     def __init__(self, o: np.ndarray, d: np.ndarray):
         self.o, self.d = o, d
         self.od = np.einsum("ij,ij->i", o, d)

@@ -19,7 +19,6 @@ def safe_dir(d: np.ndarray) -> np.ndarray:
 @dataclass(frozen=True)
 class Box:
     """Box with half extents (a, b) in x, y and height h: [-a, a] x [-b, b] x [0, h]."""
-
     a: float
     b: float
     h: float
@@ -60,7 +59,6 @@ def box_hit(o, d, lo, hi):
 @dataclass(frozen=True)
 class Sphere:
     """Sphere of radius r resting on the table: centre (0, 0, r)."""
-
     r: float
     kind = "sphere"
 
@@ -91,7 +89,6 @@ class Sphere:
 @dataclass(frozen=True)
 class Cylinder:
     """Upright capped cylinder of radius r and height h (z in [0, h])."""
-
     r: float
     h: float
     kind = "cylinder"
@@ -136,7 +133,6 @@ class Cylinder:
 @dataclass(frozen=True)
 class Cone:
     """Upright cone: base disc of radius r at z = 0, apex at (0, 0, h)."""
-
     r: float
     h: float
     kind = "cone"

@@ -176,6 +176,14 @@ def test_grid_prompts_and_filters_count_as_expected(models):
     assert all(p.predicted_iou == pytest.approx(0.97) for p in props)
     assert all(p.stability_score >= 0.95 for p in props)
 
+    # nothing passes: no proposals, no instances
+    none = SamOnnxSegmenter(*models["sam"], points_per_side=4, pred_iou_thresh=0.99)
+    assert none.segment(img) == [] and none.last_stats["after_iou"] == 0
+    # an offset beyond every logit: no mask is stable
+    unstable = SamOnnxSegmenter(*models["sam"], points_per_side=4,
+                                stability_score_offset=100.0, stability_score_thresh=0.5)
+    assert unstable.generate(img) == [] and unstable.last_stats["after_stability"] == 0
+
     # a --return-single-mask export gives one mask per prompt
     single = SamOnnxSegmenter(*models["sam_single"], points_per_side=N_SIDE)
     single.generate(img)
@@ -387,6 +395,7 @@ def test_stability_boxes_nms_and_edges():
     b = mask_boxes(lg > 0)
     assert b.tolist() == [[2, 2, 6, 6], [2, 2, 6, 8]]
     assert mask_boxes(np.zeros((1, 4, 4), bool)).tolist() == [[0, 0, 0, 0]]
+    assert stability_score(np.zeros((0, 4, 4)), 0.0, 1.0).shape == (0,)
     boxes = np.array([[0, 0, 10, 10], [1, 0, 10, 10], [20, 20, 30, 30], [0, 0, 10, 9]])
     keep = box_nms(boxes, np.array([0.5, 0.9, 0.1, 0.0]), 0.7)
     assert keep.tolist() == [1, 2]

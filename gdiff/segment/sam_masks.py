@@ -62,6 +62,8 @@ def stability_score(logits: np.ndarray, threshold: float, offset: float) -> np.n
     """
     logits = np.asarray(logits)
     n = logits.shape[0]
+    if n == 0:
+        return np.zeros(0, dtype=np.float32)
     flat = logits.reshape(n, -1)
     inter = np.count_nonzero(flat > threshold + offset, axis=1)
     union = np.count_nonzero(flat > threshold - offset, axis=1)

@@ -653,6 +653,8 @@ class SamOnnxSegmenter:
             keep = iou > o.pred_iou_thresh if o.pred_iou_thresh > 0 else np.ones(len(iou), bool)
             stats["after_iou"] += int(keep.sum())
             idx = np.flatnonzero(keep)
+            if idx.size == 0:
+                continue
             logits = self.model.to_image(emb, raw[idx], lowres)  # [k, ch, cw]
             stab = stability_score(logits, 0.0, o.stability_score_offset)
             sel = stab >= o.stability_score_thresh if o.stability_score_thresh > 0 else \
@@ -661,7 +663,7 @@ class SamOnnxSegmenter:
             masks = logits[sel] > 0.0
             idx, stab = idx[sel], stab[sel]
             bxs = mask_boxes(masks) + np.array([x0, y0, x0, y0])
-            ok = masks.reshape(len(idx), -1).any(axis=1)
+            ok = masks.any(axis=(1, 2))
             if not is_full:
                 ok &= ~near_crop_edge(bxs, box, (0, 0, w, h))
             stats["after_edge"] += int(ok.sum())

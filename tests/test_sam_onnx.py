@@ -139,12 +139,14 @@ def test_portrait_image_maps_masks_back_through_resize_and_padding(models):
         assert_found([i.mask for i in inst], gt[name].T, name)
 
 
-def test_lowres_to_image_undoes_padding_and_resize_exactly():
+@pytest.mark.parametrize("h, w", [(90, 200), (1100, 1500), (160, 120)])
+def test_lowres_to_image_undoes_padding_and_resize_exactly(h, w):
     # low-res logits equal to a linear function of the S-frame position: bilinear resampling
-    # must give that function's value at each original pixel centre
+    # must give that function's value at each original pixel centre (up- and downscaling,
+    # landscape and portrait)
     s, lres = 1024, 256
-    h, w = 90, 200
-    rh, rw = int(h * s / w + 0.5), s
+    scale = s / max(h, w)
+    rh, rw = int(h * scale + 0.5), int(w * scale + 0.5)
     c = (np.arange(lres) + 0.5) * (s / lres)  # low-res pixel centres in S-frame units
     low = (0.3 * c[None, :] - 0.7 * c[:, None])[None].astype(np.float32)
     out = lowres_to_image(low, (rh, rw), s, (h, w))[0]
@@ -152,7 +154,9 @@ def test_lowres_to_image_undoes_padding_and_resize_exactly():
     ys = (np.arange(h) + 0.5) * rh / h
     expect = 0.3 * xs[None, :] - 0.7 * ys[:, None]
     assert out.shape == (h, w)
-    np.testing.assert_allclose(out, expect, atol=1e-2)
+    inside = ((ys >= c[0]) & (ys <= c[-1]))[:, None] & ((xs >= c[0]) & (xs <= c[-1]))[None, :]
+    assert inside.mean() > 0.98
+    np.testing.assert_allclose(out[inside], expect[inside], atol=1e-2)
 
 
 # ---- mechanics: prompts, filters, NMS, batching, crops ------------------------------------

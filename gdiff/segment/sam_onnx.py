@@ -18,7 +18,8 @@ names and shapes:
     normalises and pads itself.
 
   Point coordinates are given in the resized (S-frame) pixel units, followed by a padding point
-  (0, 0) with label -1, as SAM's predictor does for point-only prompts.
+  (0, 0) with label -1, as SAM's predictor does for point-only prompts (the same values
+  SamAutomaticMaskGenerator feeds; the model's prompt encoder adds its own half-pixel shift).
 * ``efficientsam`` -- EfficientSAM's split export (encoder input ``batched_images``
   [B, 3, H, W], RGB in 0-1 at the original size; decoder inputs ``image_embeddings``,
   ``batched_point_coords`` [1, Q, N, 2] in original pixels, ``batched_point_labels``

@@ -357,6 +357,9 @@ def test_wrong_signatures_are_model_file_errors(models, tmp_path):
     assert "other.onnx" in msg and "point_coords" in msg and "batched_point_coords" in msg
     with pytest.raises(ModelFileError, match="swap"):
         SamOnnxSegmenter(dec, enc)
+    combined = tiny_sam.unrelated_model(tmp_path / "esam_combined.onnx", "batched_images")
+    with pytest.raises(ModelFileError, match="combined model"):
+        SamOnnxSegmenter(enc, combined)
     with pytest.raises(ModelFileError, match="SAM 2"):
         SamOnnxSegmenter(enc, tiny_sam.sam2_like_decoder(tmp_path / "sam2.onnx"))
     with pytest.raises(ModelFileError, match=r"other\.onnx: a SAM image encoder has one input|"

@@ -269,6 +269,11 @@ class SamOnnxModel:
                     f"{self.decoder_path}: this looks like a SAM image encoder and "
                     f"{self.encoder_path} like the decoder; swap 'segment.sam_encoder' and "
                     f"'segment.sam_decoder'")
+            if "batched_images" in dec_in:
+                raise ModelFileError(
+                    f"{self.decoder_path}: EfficientSAM's combined model (image + prompts in "
+                    f"one file); export and use its *_encoder.onnx / *_decoder.onnx pair "
+                    f"({_DOCS})")
             if "image_embed" in dec_in or any(n.startswith("high_res_feats") for n in dec_in):
                 raise ModelFileError(
                     f"{self.decoder_path}: a SAM 2 decoder (inputs {_describe(dec_in.values())})"

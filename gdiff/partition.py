@@ -95,6 +95,10 @@ class ChangeHead(nn.Module):
         # Small random encodings: Gaussians start undecided but distinguishable.
         self.encoding = nn.Parameter(0.1 * torch.randn(n, dim, generator=g))
         self.conv = nn.Conv2d(dim, 2, kernel_size=1)
+        with torch.no_grad():  # PyTorch's default range, drawn from the seeded generator
+            bound = 1.0 / dim ** 0.5
+            self.conv.weight.uniform_(-bound, bound, generator=g)
+            self.conv.bias.uniform_(-bound, bound, generator=g)
 
     @property
     def n(self) -> int:

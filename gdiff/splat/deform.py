@@ -40,14 +40,16 @@ class DeformConfig:
     time_resolution: int = 2  # samples along t (2: linear in t between before and after)
     multires: list[int] = field(default_factory=lambda: [1, 2])  # spatial resolution multipliers
     features: int = 16  # channels per plane
-    width: int = 64  # MLP width
-    depth: int = 1  # hidden layers of the shared trunk
+    width: int = 32  # MLP width
+    depth: int = 2  # linear layers of the shared trunk
+    head_layers: int = 0  # hidden layers in each head (4DGS uses 1; 0 is ~10x cheaper)
     position: bool = True
     scale: bool = True
     rotation: bool = True
     opacity: bool = True
     color: bool = True
-    sh_coeffs: int = 16  # K coefficients per channel for the colour head
+    color_degree: int = 0  # SH degree the colour head changes (0: view-independent colour)
+    sh_coeffs: int = 16  # K coefficients per channel stored by the model (set by the model)
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -133,8 +135,11 @@ class HexPlane(nn.Module):
         return sum((1.0 - p).abs().mean() for p in ps) / len(ps)
 
 
-def _head(width: int, out: int) -> nn.Sequential:
-    head = nn.Sequential(nn.ReLU(), nn.Linear(width, width), nn.ReLU(), nn.Linear(width, out))
+def _head(width: int, out: int, hidden: int) -> nn.Sequential:
+    layers: list[nn.Module] = [nn.ReLU()]
+    for _ in range(hidden):
+        layers += [nn.Linear(width, width), nn.ReLU()]
+    head = nn.Sequential(*layers, nn.Linear(width, out))
     nn.init.zeros_(head[-1].weight)
     nn.init.zeros_(head[-1].bias)
     return head
@@ -145,12 +150,13 @@ class Deformation(nn.Module):
 
     forward(means [N, 3], t) -> dict of deltas for the enabled heads: ``means`` [N, 3],
     ``scales`` [N, 3] (log space), ``quats`` [N, 4], ``opacities`` [N] (logit space),
-    ``sh`` [N, K, 3].
+    ``sh`` [N, Kc, 3] for the first Kc = (color_degree+1)^2 SH coefficients.
     """
 
     def __init__(self, cfg: DeformConfig):
         super().__init__()
         self.cfg = cfg
+        self.color_coeffs = min((cfg.color_degree + 1) ** 2, cfg.sh_coeffs)
         self.field = HexPlane(cfg.resolution, cfg.time_resolution, cfg.multires, cfg.features)
         layers: list[nn.Module] = [nn.Linear(self.field.out_dim, cfg.width)]
         for _ in range(cfg.depth - 1):
@@ -158,8 +164,9 @@ class Deformation(nn.Module):
         self.trunk = nn.Sequential(*layers)
         outs = {"means": 3 if cfg.position else 0, "scales": 3 if cfg.scale else 0,
                 "quats": 4 if cfg.rotation else 0, "opacities": 1 if cfg.opacity else 0,
-                "sh": 3 * cfg.sh_coeffs if cfg.color else 0}
-        self.heads = nn.ModuleDict({k: _head(cfg.width, d) for k, d in outs.items() if d})
+                "sh": 3 * self.color_coeffs if cfg.color else 0}
+        self.heads = nn.ModuleDict({k: _head(cfg.width, d, cfg.head_layers)
+                                    for k, d in outs.items() if d})
 
     def forward(self, means: torch.Tensor, t) -> dict[str, torch.Tensor]:
         h = self.trunk(self.field(means, t))
@@ -169,7 +176,7 @@ class Deformation(nn.Module):
             if name == "opacities":
                 d = d[:, 0]
             elif name == "sh":
-                d = d.view(-1, self.cfg.sh_coeffs, 3)
+                d = d.view(-1, self.color_coeffs, 3)
             out[name] = d
         return out
 

@@ -120,7 +120,11 @@ class GaussianModel4D(nn.Module):
                "opacities": s["opacities"], "sh": torch.cat([s["sh0"], s["shN"]], dim=1)}
         if self.deforming and len(self):
             for name, d in self.deformation(s["means"], t).items():
-                out[name] = out[name] + d
+                if name == "sh" and d.shape[1] < out["sh"].shape[1]:
+                    k = d.shape[1]
+                    out["sh"] = torch.cat([out["sh"][:, :k] + d, out["sh"][:, k:]], dim=1)
+                else:
+                    out[name] = out[name] + d
         return out
 
     def at_time(self, t) -> Gaussians:

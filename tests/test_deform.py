@@ -1,0 +1,152 @@
+"""HexPlane + MLP deformation field and the 4D model built on it."""
+
+import numpy as np
+import pytest
+import torch
+
+from gdiff.splat.deform import PLANES, DeformConfig, Deformation, HexPlane
+from gdiff.splat.model import GaussianModel4D, load_model, save_model
+
+
+def _points(n=300, seed=0):
+    rng = np.random.default_rng(seed)
+    return rng.uniform(-1, 1, (n, 3)), rng.uniform(0, 1, (n, 3))
+
+
+def test_plane_order_and_grid_axes():
+    assert PLANES == ((0, 1), (0, 2), (0, 3), (1, 2), (1, 3), (2, 3))
+    hp = HexPlane(resolution=(8, 6, 4), time_resolution=3, multires=[1], features=2)
+    shapes = [tuple(p.shape) for p in hp.grids]
+    # [1, F, res(second axis), res(first axis)]
+    assert shapes == [(1, 2, 6, 8), (1, 2, 4, 8), (1, 2, 3, 8), (1, 2, 4, 6), (1, 2, 3, 6),
+                      (1, 2, 3, 4)]
+    # a ramp along x in the xy plane must show up as a function of x only
+    with torch.no_grad():
+        for p in hp.grids:
+            p.fill_(1.0)
+        hp.grids[0].copy_(torch.linspace(0, 1, 8).view(1, 1, 1, 8).expand(1, 2, 6, 8))
+    xyz = torch.tensor([[-1.0, 0.3, 0.0], [0.0, -0.7, 0.5], [1.0, 0.9, -1.0]])
+    f = hp(xyz, 0.5)
+    assert torch.allclose(f[:, 0], torch.tensor([0.0, 0.5, 1.0]), atol=1e-6)
+
+
+def test_time_rows_are_exact_at_t0_and_t1():
+    hp = HexPlane(resolution=(8, 8, 8), time_resolution=2, multires=[1, 2], features=4)
+    xyz = torch.rand(50, 3) * 2 - 1
+    f0, f1 = hp(xyz, 0.0), hp(xyz, 1.0)
+    assert f0.shape == (50, 8)
+    assert torch.allclose(f0, f1), "time planes start at 1: t must have no effect"
+    with torch.no_grad():  # change only the t = 1 row of the xt plane
+        hp.grids[2][:, :, 1, :] = 2.0
+    assert torch.allclose(hp(xyz, 0.0), f0)
+    assert torch.allclose(hp(xyz, 1.0)[:, :4], 2 * f0[:, :4])
+    assert torch.allclose(hp(xyz, 1.0)[:, 4:], f0[:, 4:])  # the other level is untouched
+
+
+def test_points_outside_the_box_are_clamped():
+    hp = HexPlane(resolution=(8, 8, 8), multires=[1], features=2)
+    hp.set_aabb(torch.tensor([0.0, 0, 0]), torch.tensor([1.0, 1, 1]))
+    inside = hp(torch.tensor([[1.0, 1.0, 1.0]]), 0.0)
+    outside = hp(torch.tensor([[5.0, 3.0, 1.5]]), 0.0)
+    assert torch.allclose(inside, outside)
+
+
+@torch.no_grad()
+def test_regularisers():
+    hp = HexPlane(resolution=(8, 8, 8), time_resolution=3, multires=[1], features=2)
+    assert float(hp.time_l1()) == 0.0
+    assert float(hp.time_smoothness()) == 0.0
+    assert float(hp.plane_tv()) > 0.0  # random spatial planes are not smooth
+    for p in hp.grids:
+        p.fill_(0.3)
+    assert float(hp.plane_tv()) == 0.0
+    hp.grids[2][:, :, 1, :] = 1.0  # a kink along t in the xt plane
+    assert float(hp.time_smoothness()) > 0.0
+    assert float(hp.time_l1()) > 0.0
+
+
+def test_heads_start_at_zero_and_are_switchable():
+    d = Deformation(DeformConfig(resolution=[8, 8, 8], sh_coeffs=16))
+    xyz = torch.rand(20, 3)
+    out = d(xyz, 1.0)
+    assert set(out) == {"means", "scales", "quats", "opacities", "sh"}
+    assert out["means"].shape == (20, 3) and out["quats"].shape == (20, 4)
+    assert out["opacities"].shape == (20,) and out["sh"].shape == (20, 1, 3)
+    assert all(float(v.detach().abs().max()) == 0.0 for v in out.values())
+    d2 = Deformation(DeformConfig(resolution=[8, 8, 8], opacity=False, color=False,
+                                  color_degree=1))
+    assert set(d2(xyz, 0.0)) == {"means", "scales", "quats"}
+    d3 = Deformation(DeformConfig(resolution=[8, 8, 8], color_degree=1, sh_coeffs=16))
+    assert d3(xyz, 0.0)["sh"].shape == (20, 4, 3)
+
+
+def test_model_is_static_until_deformation_is_switched_on():
+    xyz, rgb = _points()
+    m = GaussianModel4D.from_points(xyz, rgb, 3, DeformConfig(resolution=[8, 8, 8]))
+    g0 = m.at_time(0.0)
+    # perturb a head so the deformation is non-zero
+    with torch.no_grad():
+        m.deformation.heads["means"][-1].bias.fill_(0.1)
+    assert torch.equal(m.at_time(1.0).means, g0.means), "deform_on is off"
+    m.deform_on.fill_(True)
+    assert torch.allclose(m.at_time(1.0).means, g0.means + 0.1)
+    # colour from points: degree-0 colour equals the point colour
+    from gdiff.splat.gaussians import sh0_to_rgb
+    assert torch.allclose(sh0_to_rgb(g0.sh[:, 0]), torch.tensor(rgb, dtype=torch.float32),
+                          atol=1e-6)
+
+
+def test_deformation_learns_a_change_at_t1_only():
+    """Fit Δopacity so that a region fades out at t = 1 while t = 0 stays unchanged."""
+    torch.manual_seed(0)
+    xyz, rgb = _points(200)
+    m = GaussianModel4D.from_points(xyz, rgb, 0, DeformConfig(resolution=[8, 8, 8],
+                                                               time_resolution=2))
+    m.deform_on.fill_(True)
+    region = torch.tensor(xyz[:, 0] > 0.3)
+    base = m.at_time(0.0).opacities.detach()
+    target1 = torch.where(region, torch.full_like(base, 0.01), base)
+    opt = torch.optim.Adam(m.deformation.parameters(), lr=2e-2)
+    for _ in range(60):
+        loss = ((m.at_time(1.0).opacities - target1) ** 2).mean() \
+            + ((m.at_time(0.0).opacities - base) ** 2).mean()
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+    with torch.no_grad():
+        o1, o0 = m.at_time(1.0).opacities, m.at_time(0.0).opacities
+    assert float(o1[region].mean()) < 0.04
+    assert float((o1[~region] - base[~region]).abs().mean()) < 0.02
+    assert float((o0 - base).abs().mean()) < 0.02
+
+
+def test_save_load_round_trip_with_extra_per_gaussian_entries(tmp_path):
+    xyz, rgb = _points(50)
+    m = GaussianModel4D.from_points(xyz, rgb, 2, DeformConfig(resolution=[8, 8, 8]))
+    m.deform_on.fill_(True)
+    m.active_sh_degree.fill_(2)
+    with torch.no_grad():
+        m.deformation.heads["scales"][-1].bias.fill_(0.2)
+    m.splats["encoding"] = torch.nn.Parameter(torch.randn(50, 16))
+    save_model(m, tmp_path / "model.pt", meta={"note": "x"})
+    back = load_model(tmp_path / "model.pt")
+    assert back.meta == {"note": "x"} and back.sh_degree == 2
+    assert torch.equal(back.splats["encoding"], m.splats["encoding"])
+    a, b = m.at_time(1.0), back.at_time(1.0)
+    assert b.sh_degree == 2
+    for name in ("means", "quats", "scales", "opacities", "sh"):
+        assert torch.allclose(getattr(a, name), getattr(b, name)), name
+
+
+def test_static_model_and_bad_files(tmp_path):
+    from gdiff.errors import ModelFileError
+
+    xyz, rgb = _points(10)
+    m = GaussianModel4D.from_points(xyz, rgb, 0, None)
+    assert m.deformation is None
+    assert torch.equal(m.at_time(0.0).means, m.at_time(1.0).means)
+    with pytest.raises(ModelFileError, match="not found"):
+        load_model(tmp_path / "none.pt")
+    torch.save({"something": 1}, tmp_path / "other.pt")
+    with pytest.raises(ModelFileError, match="other.pt"):
+        load_model(tmp_path / "other.pt")

@@ -106,6 +106,11 @@ class SegmentOptions:
     points_per_side: prompt grid density (points_per_side^2 point prompts).
     pred_iou_thresh, stability_score_thresh, box_nms_thresh: the usual automatic-mask-generator
         filters.
+    points_per_batch, stability_score_offset, crop_n_layers, crop_nms_thresh,
+    crop_overlap_ratio, crop_n_points_downscale_factor, min_mask_region_area: as in
+        segment-anything's automatic mask generator (see docs/sam.md).
+    threads: onnxruntime intra-op threads (0 = the rule's threads / onnxruntime's choice).
+    providers: onnxruntime execution providers (None = CUDA when available, else CPU).
     """
 
     backend: str = "geometric"
@@ -124,6 +129,15 @@ class SegmentOptions:
     pred_iou_thresh: float = 0.8
     stability_score_thresh: float = 0.9
     box_nms_thresh: float = 0.7
+    points_per_batch: int = 64
+    stability_score_offset: float = 1.0
+    crop_n_layers: int = 0
+    crop_nms_thresh: float = 0.7
+    crop_overlap_ratio: float = 512 / 1500
+    crop_n_points_downscale_factor: int = 1
+    min_mask_region_area: int = 0
+    threads: int = 0
+    providers: list[str] | None = None
 
     def __post_init__(self):
         if self.backend not in BACKENDS:

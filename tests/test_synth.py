@@ -389,3 +389,37 @@ def test_textures_detailed_and_deterministic(kind):
     assert a.std(axis=0).max() > 0.05  # not flat
     b = synth.texture_albedo(kind, p + [0.005, 0.0, 0.0], prm)
     assert np.abs(a - b).max() > 0.05
+
+
+def test_point_lamp_falloff_and_shadows():
+    p = dataclasses.replace(synth.PRESETS["tiny"], lighting="lamp", width=80, height=60,
+                            supersample=1, n_eval=2)
+    scene = synth.build_scene(p, 0)
+    L = scene.lighting["before"]
+    assert L == scene.lighting["after"] and not L.suns and len(L.points) == 1
+    lamp = L.points[0]
+    # bare floor around the table: ambient + strength * cos / d^2
+    pts = np.array([[2.0, 0.0, 0.0], [2.5, 1.2, 0.0], [-2.8, -2.0, 0.0], [1.2, -2.6, 0.0]])
+    up = np.tile([0.0, 0.0, 1.0], (4, 1))
+    e = scene.irradiance(pts, up, "before")
+    v = np.asarray(lamp.position) - pts
+    dist = np.linalg.norm(v, axis=1)
+    expect = L.ambient * np.asarray(L.ambient_color) + np.outer(
+        lamp.strength * v[:, 2] / dist ** 3, lamp.color)
+    assert np.allclose(e, expect, rtol=1e-12)
+    assert e[:, 0].argmax() == dist.argmin() and e[:, 0].argmin() == dist.argmax()
+    # a point just beyond each object, as seen from the lamp, facing the lamp: ambient only
+    for obj in scene.objects_in("before"):
+        c = scene.object_center(obj, "before")
+        away = (c - lamp.position) / np.linalg.norm(c - lamp.position)
+        q = c + away * (np.linalg.norm(obj.shape.hi - obj.shape.lo) / 2 + 0.01)
+        nq = -away[None]
+        e_q = scene.irradiance(q[None], nq, "before")
+        amb = L.ambient * (0.75 + 0.25 * nq[0, 2]) * np.asarray(L.ambient_color)
+        assert np.allclose(e_q[0], amb, rtol=1e-12)
+        assert (scene.irradiance(q[None], nq, "before", shadows=False)[0] > amb + 0.05).all()
+    for cam in scene.cameras("eval"):
+        r = scene.render(cam, "before")
+        r0 = scene.render(cam, "before", shadows=False)
+        assert r["shadow"].sum() > 5
+        assert (_luma(r["rgb"])[r["shadow"]] < _luma(r0["rgb"])[r["shadow"]]).all()

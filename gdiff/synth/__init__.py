@@ -38,7 +38,7 @@ from a seed), :mod:`.writer` (scene folder and CLI).
 """
 
 from .build import build_scene, orbit_path
-from .model import STATES, Lighting, Orbit, Pose2D, Sun, SynthObject
+from .model import STATES, Lighting, Orbit, PointLight, Pose2D, Sun, SynthObject
 from .presets import PRESETS, SynthOptions, SynthPreset, get_preset
 from .scene import SynthScene
 from .shapes import SHAPES, Box, Cone, Cylinder, Sphere
@@ -46,6 +46,6 @@ from .textures import OBJECT_TEXTURES, TEXTURES, texture_albedo
 from .writer import make_scene, main
 
 __all__ = ["PRESETS", "SHAPES", "STATES", "OBJECT_TEXTURES", "TEXTURES", "Box", "Cone",
-           "Cylinder", "Lighting", "Orbit", "Pose2D", "Sphere", "Sun", "SynthObject",
-           "SynthOptions", "SynthPreset", "SynthScene", "build_scene", "get_preset", "main",
-           "make_scene", "orbit_path", "texture_albedo"]
+           "Cylinder", "Lighting", "Orbit", "PointLight", "Pose2D", "Sphere", "Sun",
+           "SynthObject", "SynthOptions", "SynthPreset", "SynthScene", "build_scene",
+           "get_preset", "main", "make_scene", "orbit_path", "texture_albedo"]

@@ -10,8 +10,8 @@ import numpy as np
 
 from ..cameras import Camera
 from ..errors import GdiffError
-from .model import (STATES, Lighting, Orbit, Pose2D, Sun, SynthObject, check_state,
-                    jittered_pose, kelvin_rgb)
+from .model import (STATES, Lighting, Orbit, PointLight, Pose2D, Sun, SynthObject,
+                    check_state, jittered_pose, kelvin_rgb)
 from .presets import SynthPreset, get_preset
 from .scene import ROOM_FACES, SynthScene
 from .shapes import SHAPES, random_shape
@@ -80,9 +80,19 @@ def _room_textures(rng) -> dict[str, tuple[str, dict]]:
             **{f: walls[i] for f, i in zip(ROOM_FACES[2:], order)}}
 
 
-def _lighting(rng, mode: str) -> dict[str, Lighting]:
-    """Lighting of both states: ``uniform`` (identical) or ``change`` (the sun moves and
-    changes colour and strength; ambient changes)."""
+def _lighting(rng, p: SynthPreset) -> dict[str, Lighting]:
+    """Lighting of both states: ``uniform`` (identical soft sun), ``change`` (the sun moves and
+    changes colour and strength; ambient changes) or ``lamp`` (identical warm point lamp
+    0.5 m under the ceiling above the table, inverse-square fall-off)."""
+    mode = p.lighting
+    if mode == "lamp":
+        lamp = PointLight(position=(float(rng.uniform(-0.4, 0.4)), float(rng.uniform(-0.4, 0.4)),
+                                    p.room_height - 0.5),
+                          color=kelvin_rgb(3200), strength=1.2 * (p.room_height - 0.5) ** 2)
+        L = Lighting(ambient_color=kelvin_rgb(6500), ambient=0.3, suns=(), points=(lamp,),
+                     description="warm point lamp above the table (inverse-square fall-off, "
+                                 "hard shadows), dim ambient")
+        return {"before": L, "after": L}
     if mode == "uniform":
         sun = Sun(azimuth=float(rng.uniform(0, 360)), elevation=float(rng.uniform(62, 75)),
                   color=kelvin_rgb(6000), strength=0.9, angle_deg=20.0)
@@ -154,7 +164,7 @@ def build_scene(preset: str | SynthPreset = "tiny", seed: int = 0) -> SynthScene
         raise GdiffError(f"synth preset '{p.name}': could not place the objects on the table "
                          "without overlap; reduce the object counts or enlarge the table")
     room = _room_textures(rng)
-    lighting = _lighting(rng, p.lighting)
+    lighting = _lighting(rng, p)
     return _finish_scene(rng, p, int(seed), objects, changes, room, lighting)
 
 

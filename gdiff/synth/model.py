@@ -74,18 +74,34 @@ class Sun:
 
 
 @dataclass(frozen=True)
+class PointLight:
+    """Point light at ``position`` (world, metres), linear RGB ``color``. The irradiance of a
+    surface at distance d (metres) is ``strength * color * cos(angle) / d**2`` (inverse-square
+    fall-off); shadows are hard."""
+
+    position: tuple[float, float, float]
+    color: tuple[float, float, float]
+    strength: float
+
+
+@dataclass(frozen=True)
 class Lighting:
-    """Ambient (linear RGB colour x strength, brighter for up-facing surfaces) and suns."""
+    """Ambient (linear RGB colour x strength, brighter for up-facing surfaces), suns and
+    point lights."""
+
     ambient_color: tuple[float, float, float]
     ambient: float
     suns: tuple[Sun, ...]
     description: str = ""
+    points: tuple[PointLight, ...] = ()
 
     def to_json(self) -> dict:
+        lights = [{"type": "SUN", **dataclasses.asdict(s),
+                   "direction_to_light": s.direction.tolist()} for s in self.suns]
+        lights += [{"type": "POINT", **dataclasses.asdict(pt)} for pt in self.points]
         return {"description": self.description,
                 "ambient": {"color_linear": list(self.ambient_color), "strength": self.ambient},
-                "lights": [{"type": "SUN", **dataclasses.asdict(s),
-                            "direction_to_light": s.direction.tolist()} for s in self.suns]}
+                "lights": lights}
 
 
 def kelvin_rgb(k: float) -> tuple[float, float, float]:

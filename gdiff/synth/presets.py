@@ -14,8 +14,9 @@ class SynthPreset:
     Image size in pixels; angles in degrees; lengths in metres. Orbits are arcs around the
     table centre: the before arc is centred on a random azimuth, the after arc on that azimuth
     plus ``after_shift_deg``; elevations vary smoothly along each arc between the two values.
-    ``lighting`` is ``"uniform"`` (the same soft high sun before and after) or ``"change"``
-    (a hard sun that moves, changes colour and strength; ambient changes too).
+    ``lighting`` is ``"uniform"`` (the same soft high sun before and after), ``"change"``
+    (a hard sun that moves, changes colour and strength; ambient changes too) or ``"lamp"``
+    (the same point lamp above the table before and after, inverse-square fall-off).
     """
 
     name: str
@@ -54,9 +55,9 @@ class SynthPreset:
         if min(self.n_before, self.n_after) < 2 or self.n_eval < 1:
             raise ConfigError(f"synth preset '{self.name}': need n_before, n_after >= 2 and "
                               "n_eval >= 1")
-        if self.lighting not in ("uniform", "change"):
-            raise ConfigError(f"synth preset '{self.name}': lighting must be 'uniform' or "
-                              f"'change', not {self.lighting!r}")
+        if self.lighting not in ("uniform", "change", "lamp"):
+            raise ConfigError(f"synth preset '{self.name}': lighting must be 'uniform', "
+                              f"'change' or 'lamp', not {self.lighting!r}")
         n_changes = self.n_added + self.n_removed + self.n_moved + self.n_replaced
         if min(self.n_static, self.n_added, self.n_removed, self.n_moved, self.n_replaced) < 0:
             raise ConfigError(f"synth preset '{self.name}': object counts must be >= 0")

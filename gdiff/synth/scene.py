@@ -177,10 +177,12 @@ class SynthScene:
             n[sel] = nl[better] @ R.T
         return t, code.astype(np.int64), n
 
-    def occluded(self, o: np.ndarray, d: np.ndarray, state: str) -> np.ndarray:
-        """Whether rays ``o``, ``d`` [N, 3] hit the table or an object (shadow rays) -> bool [N]."""
+    def occluded(self, o: np.ndarray, d: np.ndarray, state: str,
+                 t_max: np.ndarray | None = None) -> np.ndarray:
+        """Whether rays ``o``, ``d`` [N, 3] hit the table or an object before ``t_max`` [N]
+        (default: anywhere) -> bool [N]. Walls and ceiling never block (shadow rays)."""
         occ = np.zeros(len(o), dtype=bool)
-        far = np.full(len(o), np.inf)
+        far = np.full(len(o), np.inf) if t_max is None else np.asarray(t_max, dtype=float)
         cull = _RayCull(o, d)
         for _, fn, R, T, bc, br in self._casters(state):
             idx = cull.candidates(bc, br, far)
@@ -188,7 +190,7 @@ class SynthScene:
             if len(idx) == 0:
                 continue
             tl, _ = fn((o[idx] - T) @ R, d[idx] @ R)
-            occ[idx[np.isfinite(tl)]] = True
+            occ[idx[tl < far[idx]]] = True
         return occ
 
     def _albedo(self, p: np.ndarray, code: np.ndarray, state: str) -> np.ndarray:
@@ -216,20 +218,39 @@ class SynthScene:
             out[m] = texture_albedo(kind, local, prm)
         return out
 
-    def _irradiance(self, p, n, state, sun_dirs=None, shadows=True):
-        """Linear RGB irradiance [N, 3] at points ``p`` with normals ``n``; ``sun_dirs`` gives
-        per-sun [N, 3] directions to the light (default: the sun's centre)."""
+    def _light_dirs(self, p: np.ndarray, state: str, sun_dirs=None):
+        """For each light of ``state``: (unit directions [N, 3] from ``p`` to the light,
+        distance [N] or None for suns, strength x fall-off ([N] or scalar), colour [3]).
+        ``sun_dirs`` optionally gives per-sun sampled directions [N, 3]."""
+        L = self.lighting[state]
+        for k, sun in enumerate(L.suns):
+            ld = np.broadcast_to(sun.direction, p.shape) if sun_dirs is None else sun_dirs[k]
+            yield ld, None, sun.strength, np.asarray(sun.color)
+        for pt in L.points:
+            v = np.asarray(pt.position) - p
+            dist = np.linalg.norm(v, axis=1)
+            yield v / dist[:, None], dist, pt.strength / dist ** 2, np.asarray(pt.color)
+
+    def _visible(self, p, n, ld, dist, state, shadows: bool):
+        """cos(angle) [N] (0 when facing away) and whether the light is unblocked [N]."""
+        ndl = np.maximum(np.einsum("ij,ij->i", n, ld), 0.0)
+        vis = ndl > 0
+        if shadows and vis.any():
+            idx = np.flatnonzero(vis)
+            vis[idx] = ~self.occluded(p[idx] + _SHADOW_OFFSET * n[idx], ld[idx], state,
+                                      None if dist is None else dist[idx])
+        return ndl, vis
+
+    def irradiance(self, p: np.ndarray, n: np.ndarray, state: str, shadows: bool = True,
+                   sun_dirs=None) -> np.ndarray:
+        """Linear RGB irradiance [N, 3] at world points ``p`` [N, 3] with unit normals ``n``:
+        hemispherical ambient + every sun (towards its centre, or ``sun_dirs``) and point light
+        (inverse-square fall-off), with cast shadows unless ``shadows`` is false."""
         L = self.lighting[state]
         e = np.outer(L.ambient * (0.75 + 0.25 * n[:, 2]), np.asarray(L.ambient_color))
-        for k, sun in enumerate(L.suns):
-            ld = sun.direction[None, :].repeat(len(p), 0) if sun_dirs is None else sun_dirs[k]
-            ndl = np.einsum("ij,ij->i", n, ld)
-            lit = ndl > 0
-            vis = lit.copy()
-            if shadows and lit.any():
-                idx = np.flatnonzero(lit)
-                vis[idx] = ~self.occluded(p[idx] + _SHADOW_OFFSET * n[idx], ld[idx], state)
-            e += np.outer(sun.strength * np.maximum(ndl, 0.0) * vis, np.asarray(sun.color))
+        for ld, dist, strength, color in self._light_dirs(p, state, sun_dirs):
+            ndl, vis = self._visible(p, n, ld, dist, state, shadows)
+            e += np.outer(strength * ndl * vis, color)
         return e
 
     def render(self, camera: Camera, state: str, supersample: int | None = None,
@@ -244,8 +265,8 @@ class SynthScene:
         * ``normal`` float32 [H, W, 3]: world unit normal facing the camera, pixel centres;
         * ``ids`` int32 [H, W]: object id (>= 1) or 0 (room, table), pixel centres;
         * ``changed`` bool [H, W]: pixel centre shows an object of :attr:`changed_ids`;
-        * ``shadow`` bool [H, W]: the pixel-centre surface faces the sun but the sun's centre
-          is blocked (a cast shadow), for the first sun.
+        * ``shadow`` bool [H, W]: the pixel-centre surface faces a light but the light (the
+          sun's centre) is blocked by the table or an object (a cast shadow).
 
         ``shadows=False`` skips shadow rays (no cast shadows; for tests and comparisons).
         """
@@ -260,7 +281,7 @@ class SynthScene:
         alb = srgb_to_linear(self._albedo(p, code, state))
         L = self.lighting[state]
         dirs = [_sun_disc_dirs(s, H, W, ss, self.seed + 31 * k) for k, s in enumerate(L.suns)]
-        e = self._irradiance(p, n, state, dirs, shadows)
+        e = self.irradiance(p, n, state, shadows, dirs)
         radiance = 1.0 - np.exp(-alb * e)  # exponential tone curve (linear in, linear out)
         lin = radiance.reshape(H, W, ss * ss, 3).mean(axis=2)
         gt["rgb"] = linear_to_srgb(lin).astype(np.float32)
@@ -277,14 +298,11 @@ class SynthScene:
         is_obj = code >= _FIRST_OBJECT
         ids[is_obj] = obj_ids[code[is_obj] - _FIRST_OBJECT]
         shadow = np.zeros(len(o), dtype=bool)
-        suns = self.lighting[state].suns
-        if shadows and suns:
-            ld = suns[0].direction
+        if shadows:
             p = o + t[:, None] * d
-            lit = n @ ld > 0
-            idx = np.flatnonzero(lit)
-            shadow[idx] = self.occluded(p[idx] + _SHADOW_OFFSET * n[idx],
-                                        np.broadcast_to(ld, (len(idx), 3)), state)
+            for ld, dist, _, _ in self._light_dirs(p, state):
+                ndl, vis = self._visible(p, n, ld, dist, state, True)
+                shadow |= (ndl > 0) & ~vis
         changed = np.isin(ids, np.asarray(self.changed_ids, dtype=np.int32))
         return {"depth": depth.reshape(H, W).astype(np.float32),
                 "normal": n.reshape(H, W, 3).astype(np.float32),

@@ -4,7 +4,7 @@ For each size (default 160x120 with 20k Gaussians and 320x240 with 100k) it prin
 forward and forward+backward wall time (best of ``--repeats``: on a shared machine other
 processes only ever add time), Gaussian-pixel pairs per
 second (candidate pairs = pixels inside the visible Gaussians' 3-sigma boxes, the same count
-for every method) and the peak resident memory the call added. The images of every method are
+for every method) and the peak resident memory the call added (VmHWM after a peak reset). The images of every method are
 compared with the baseline's (max abs difference).
 
 Methods:
@@ -14,7 +14,8 @@ Methods:
   transmittance by cumulative sum, scatter with ``index_add``; no pair filtering and no early
   stop (the alpha and transmittance rules only zero the weights, so the image is the same).
 
-Each measurement runs in a fresh subprocess so peak memory (``ru_maxrss``) is per method.
+Timings run in one subprocess per size with the methods alternating; peak memory
+(VmHWM growth during one forward+backward) in a fresh subprocess per method.
 
     python benchmarks/rasterize.py [--threads 2] [--repeats 3] [--sizes 160x120:20000,...]
 """
@@ -121,7 +122,43 @@ def count_pairs(scene, W, H):
     return len(src), useful
 
 
-def _measure(method, W, H, n, repeats, threads, q):
+def _timings(methods, W, H, n, repeats, threads, q):
+    """Best-of-``repeats`` fwd and fwd+bwd times; methods alternate round-robin so that a
+    burst of load from other processes hits all of them alike."""
+    torch.set_num_threads(threads)
+    scene = make_scene(n, W, H)
+    params = [t.clone().requires_grad_(True) for t in scene[:5]]
+    scene = (*params, *scene[5:])
+    if "gdiff-cpp" in methods:
+        from gdiff.splat import csrc
+        csrc.load(required=True)
+    weights = torch.rand(1, H, W, 3, generator=torch.Generator().manual_seed(1))
+    fwd = {m: [] for m in methods}
+    both = {m: [] for m in methods}
+    images = {}
+    for m in methods:
+        with torch.no_grad():
+            images[m] = render(m, scene, W, H)[0]  # warm-up
+    for _ in range(repeats):
+        for m in methods:
+            t0 = time.perf_counter()
+            with torch.no_grad():
+                render(m, scene, W, H)
+            fwd[m].append(time.perf_counter() - t0)
+            for p in params:
+                p.grad = None
+            t0 = time.perf_counter()
+            out, a = render(m, scene, W, H)
+            ((out * weights).sum() + a.sum()).backward()
+            both[m].append(time.perf_counter() - t0)
+    ref = images.get("baseline")
+    q.put({m: dict(fwd=min(fwd[m]), both=min(both[m]),
+                   diff=float((images[m] - ref).abs().max()) if ref is not None else float("nan"))
+           for m in methods})
+
+
+def _peak(method, W, H, n, threads, q):
+    """Peak resident memory added by one forward+backward call (MiB)."""
     torch.set_num_threads(threads)
     scene = make_scene(n, W, H)
     params = [t.clone().requires_grad_(True) for t in scene[:5]]
@@ -129,33 +166,30 @@ def _measure(method, W, H, n, repeats, threads, q):
     if method == "gdiff-cpp":
         from gdiff.splat import csrc
         csrc.load(required=True)
-    weights = torch.rand(1, H, W, 3, generator=torch.Generator().manual_seed(1))
-    with torch.no_grad():
-        render(method, scene, W, H)  # warm-up
-    rss0 = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
-    fwd, both = [], []
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        with torch.no_grad():
-            img, alpha = render(method, scene, W, H)
-        fwd.append(time.perf_counter() - t0)
-    for _ in range(repeats):
-        for p in params:
-            p.grad = None
-        t0 = time.perf_counter()
-        out, a = render(method, scene, W, H)
-        ((out * weights).sum() + a.sum()).backward()
-        both.append(time.perf_counter() - t0)
-    peak = (resource.getrusage(resource.RUSAGE_SELF).ru_maxrss - rss0) / 1024.0  # MiB
-    torch.save(img, f"/tmp/gdiff_bench_{os.getpid()}.pt")
-    q.put(dict(fwd=min(fwd), both=min(both), peak_mib=peak,
-               image=f"/tmp/gdiff_bench_{os.getpid()}.pt"))
+    rss0 = _status_kib("VmRSS")
+    try:  # reset the peak (VmHWM) to the current RSS so imports do not count (Linux >= 4.0)
+        with open("/proc/self/clear_refs", "w") as fh:
+            fh.write("5")
+    except OSError:
+        pass
+    out, a = render(method, scene, W, H)
+    (out.sum() + a.sum()).backward()
+    q.put((_status_kib("VmHWM") - rss0) / 1024.0)
 
 
-def measure(method, W, H, n, repeats, threads):
+def _status_kib(key):
+    """A memory figure (KiB) from /proc/self/status, e.g. VmRSS or VmHWM (peak)."""
+    with open("/proc/self/status") as fh:
+        for line in fh:
+            if line.startswith(key + ":"):
+                return int(line.split()[1])
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+
+
+def in_subprocess(fn, *args):
     ctx = mp.get_context("spawn")
     q = ctx.Queue()
-    p = ctx.Process(target=_measure, args=(method, W, H, n, repeats, threads, q))
+    p = ctx.Process(target=fn, args=(*args, q))
     p.start()
     res = q.get()
     p.join()
@@ -184,13 +218,11 @@ def main(argv=None):
               f"{useful / 1e6:.2f} M inside the ellipse with alpha >= 1/255")
         print(f"{'method':<12} {'fwd s':>8} {'fwd+bwd s':>10} {'fwd Mpair/s':>12} "
               f"{'f+b Mpair/s':>12} {'peak MiB':>9} {'max |diff|':>11} {'f+b speedup':>12}")
-        res = {m: measure(m, W, H, n, args.repeats, args.threads) for m in methods}
-        ref = torch.load(res["baseline"]["image"]) if "baseline" in res else None
+        res = in_subprocess(_timings, methods, W, H, n, args.repeats, args.threads)
         for m in methods:
             r = res[m]
-            img = torch.load(r["image"])
-            os.unlink(r["image"])
-            diff = float((img - ref).abs().max()) if ref is not None else float("nan")
+            r["peak_mib"] = in_subprocess(_peak, m, W, H, n, args.threads)
+            diff = r["diff"]
             speed = res["baseline"]["both"] / r["both"] if "baseline" in res else float("nan")
             print(f"{m:<12} {r['fwd']:8.3f} {r['both']:10.3f} {cand / r['fwd'] / 1e6:12.2f} "
                   f"{cand / r['both'] / 1e6:12.2f} {r['peak_mib']:9.0f} {diff:11.2e} "

@@ -433,5 +433,7 @@ def _rasterize_gsplat(**kw):
 
     kw.pop("packed", None)
     render, alpha, meta = gsplat.rasterization(packed=False, **kw)
+    radii = meta["radii"]
+    meta["visible"] = (radii > 0).all(-1) if radii.dim() == 3 else radii > 0
     meta["backend"] = "gsplat"
     return render, alpha, meta

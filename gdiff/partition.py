@@ -554,14 +554,27 @@ def _latest_checkpoint(ckdir):
     return files[-1] if files else None
 
 
-def _save_checkpoint(ckdir, it, pm, opt, index, rows, opts) -> None:
+# options that do not change the result: a checkpoint stays valid when they differ
+_NON_RESULT_OPTIONS = ("iterations", "checkpoint_every", "log_every")
+
+
+def run_key(opts: PartitionOptions, **inputs) -> dict:
+    """What a checkpoint must match to be resumed from: the options that shape the result and
+    fingerprints of the inputs (``inputs``: name -> str)."""
+    import dataclasses
+
+    d = {k: v for k, v in dataclasses.asdict(opts).items() if k not in _NON_RESULT_OPTIONS}
+    return {**d, **{k: str(v) for k, v in inputs.items()}}
+
+
+def _save_checkpoint(ckdir, it, pm, opt, index, rows, opts, key) -> None:
     from pathlib import Path
 
     from .io import atomic_path
 
     ckdir = Path(ckdir)
     blob = {"iteration": it, "pmodel": partition_blob(pm, opts), "optimizer": opt.state_dict(),
-            "index": index.state_dict(), "log": rows}
+            "index": index.state_dict(), "log": rows, "key": key}
     with atomic_path(ckdir / f"ckpt_{it:06d}.pt") as tmp:
         torch.save(blob, tmp)
     for old in sorted(ckdir.glob("ckpt_*.pt"))[:-2]:  # keep the two newest
@@ -574,7 +587,7 @@ def _view_rng(seed: int, it: int, purpose: int) -> np.random.Generator:
 
 
 def fine_tune(pm: PartitionModel, data: list[dict], opts: PartitionOptions, ckdir=None,
-              extent: float = 1.0) -> list[dict]:
+              extent: float = 1.0, key: dict | None = None) -> list[dict]:
     """Optimise ``pm`` on ``data``: L = L1 + L_TV + lambda_2d BCE + lambda_3d L3d.
 
     Args:
@@ -582,8 +595,12 @@ def fine_tune(pm: PartitionModel, data: list[dict], opts: PartitionOptions, ckdi
         data: one dict per training photo: ``camera`` (Camera), ``time`` (0/1), ``image``
             [H, W, 3] float tensor (sRGB), ``target`` [H, W] float tensor in [0, 1].
         opts: options (iterations, weights, learning rates, kNN settings, checkpointing).
-        ckdir: checkpoint folder; training resumes from its newest checkpoint when present.
+        ckdir: checkpoint folder (``ckpt_NNNNNN.pt`` every ``checkpoint_every`` iterations and
+            at the end, the two newest kept); training resumes from the newest one when its
+            iteration is <= ``opts.iterations`` and its ``key`` matches.
         extent: scene extent (world units) scaling the position / deformation learning rates.
+        key: :func:`run_key` of this run (default: from ``opts`` alone); a checkpoint with
+            another key (other options or inputs) is ignored with a warning.
     Returns:
         the training log: one dict per ``log_every`` iterations (iteration, loss terms, seconds).
     Raises:
@@ -600,10 +617,18 @@ def fine_tune(pm: PartitionModel, data: list[dict], opts: PartitionOptions, ckdi
         raise ValueError("no training views")
     index = NeighbourIndex(opts.knn_k, opts.knn_samples, opts.knn_refresh, opts.seed)
     start, rows = 0, []
+    key = run_key(opts) if key is None else key
     ck = _latest_checkpoint(ckdir) if ckdir is not None else None
     if ck is not None:
-        blob = torch.load(ck, map_location="cpu", weights_only=True)
-        if blob["iteration"] <= opts.iterations:
+        try:
+            blob = torch.load(ck, map_location="cpu", weights_only=True)
+        except Exception as e:  # written atomically, so only a foreign/corrupt file
+            log.warning("ignoring unreadable checkpoint %s (%s)", ck, e)
+            blob = {"iteration": -1}
+        if blob.get("key") != key or blob["iteration"] < 0:
+            log.warning("checkpoint %s is from other options or inputs; starting afresh", ck)
+            ck = None
+        elif blob["iteration"] <= opts.iterations:
             _load_state(pm, blob["pmodel"])
             start, rows = int(blob["iteration"]), list(blob["log"])
             index.load_state_dict(blob["index"])
@@ -653,7 +678,7 @@ def fine_tune(pm: PartitionModel, data: list[dict], opts: PartitionOptions, ckdi
                          "seconds": _time.perf_counter() - t0})
             acc = {"l1": 0.0, "tv": 0.0, "bce": 0.0, "l3d": 0.0, "n3d": 0}
         if ckdir is not None and (done % opts.checkpoint_every == 0 or done == opts.iterations):
-            _save_checkpoint(ckdir, done, pm, opt, index, rows, opts)
+            _save_checkpoint(ckdir, done, pm, opt, index, rows, opts, key)
             last_ck = str(Path(ckdir) / f"ckpt_{done:06d}.pt")
     pm.eval()
     return rows
@@ -680,12 +705,14 @@ def train_partition(fit_model_path, cameras_json, keyframes_csv, scene_dir, out_
             ``unchanged.ply`` (+ per-time ``changed_t0/_t1``, ``unchanged_t0/_t1`` PLYs),
             ``probability.npy`` (per-Gaussian change probability [N] float32),
             ``maps/`` (change maps at every key pose, see :func:`write_key_maps`),
-            ``keypose_scores.csv``, ``train_log.csv``, ``summary.json``, ``ckpt/``.
+            ``keypose_scores.csv``, ``train_log.csv``, ``summary.json``; ``ckpt/`` while
+            training (removed when the stage completes; a rerun resumes from it).
         options: :class:`PartitionOptions` (defaults when None).
         device: ``auto``/``cpu``/``cuda``.
     Returns:
         summary dict (counts of Gaussians, mean key-pose IoU, seconds).
     """
+    import shutil
     import time as _time
     from pathlib import Path
 
@@ -718,7 +745,9 @@ def train_partition(fit_model_path, cameras_json, keyframes_csv, scene_dir, out_
         np.stack([v.camera.center for v in views])))
     log.info("partition: %d Gaussians, %d key views, %d iterations on %s", len(fit), len(views),
              opts.iterations, dev)
-    rows = fine_tune(pm, data, opts, out / "ckpt", extent)
+    key = run_key(opts, fit=_sha1(fit_model_path), keyframes=_sha1(keyframes_csv),
+                  cameras=_sha1(cameras_json))
+    rows = fine_tune(pm, data, opts, out / "ckpt", extent, key)
     t_train = _time.perf_counter() - t_start
     save_partition_model(pm, out / "model.pt", opts)
     write_csv(out / "train_log.csv", pd.DataFrame(rows))
@@ -736,8 +765,19 @@ def train_partition(fit_model_path, cameras_json, keyframes_csv, scene_dir, out_
                "keypose_iou_union": float(np.nanmean(scores["iou_union"])),
                "seconds_train": t_train, "seconds_total": _time.perf_counter() - t_start}
     write_json(out / "summary.json", summary)
+    shutil.rmtree(out / "ckpt", ignore_errors=True)  # finished: nothing to resume
     log.info("partition done: %s", summary)
     return summary
+
+
+def _sha1(path) -> str:
+    import hashlib
+
+    h = hashlib.sha1()
+    with open(path, "rb") as f:
+        for block in iter(lambda: f.read(1 << 20), b""):
+            h.update(block)
+    return h.hexdigest()
 
 
 # --------------------------------------------------------------------------------------------

@@ -412,3 +412,29 @@ def test_cli_renders_change_map_at_an_arbitrary_pose(tiny_partition, tmp_path, c
     assert gdiff_main(["change-map", "--model", str(res / "fit" / "model.pt"), "--pose",
                        *pose, "--out", str(out2)]) == 2
     assert "fit-stage model" in capsys.readouterr().err
+
+
+def test_checkpoint_of_other_options_is_not_resumed(tmp_path, caplog):
+    from gdiff.partition import PartitionModel, fine_tune
+
+    rng = np.random.default_rng(0)
+    means, cols = rng.normal(scale=0.3, size=(100, 3)), rng.random((100, 3))
+    cam = _front_camera()
+    data = [{"camera": cam, "time": 0, "image": torch.rand(30, 40, 3),
+             "target": (torch.rand(30, 40) > 0.7).float()}]
+
+    def run(iterations, lambda_2d):
+        pm = PartitionModel(_static_model(means, cols), ChangeHead(100, 16), cam)
+        opts = PartitionOptions(iterations=iterations, lambda_2d=lambda_2d, checkpoint_every=2,
+                                log_every=1, knn_samples=20)
+        return fine_tune(pm, data, opts, tmp_path)
+
+    run(2, 1.0)
+    with caplog.at_level("INFO", logger="gdiff.partition"):
+        rows = run(3, 2.0)
+    assert "other options" in caplog.text and "resuming" not in caplog.text
+    assert len(rows) == 3  # trained from iteration 0
+    caplog.clear()
+    with caplog.at_level("INFO", logger="gdiff.partition"):
+        run(4, 2.0)
+    assert "resuming" in caplog.text and "iteration 3" in caplog.text

@@ -43,8 +43,8 @@ else torch. The projection (and so the gradient chain to 3D parameters) is share
 
 from __future__ import annotations
 
+import dataclasses
 import logging
-import math
 from typing import Any
 
 import torch
@@ -59,6 +59,33 @@ T_MIN = 1e-4
 SIGMA_MAX = 4.5  # 3-sigma ellipse: 0.5 * 3**2
 RENDER_MODES = ("RGB", "D", "ED", "RGB+D", "RGB+ED")
 BACKENDS = ("auto", "torch", "cpp", "gsplat")
+
+
+@dataclasses.dataclass
+class RasterizeOptions:
+    """Rasterizer settings shared by the stages that render (config section ``rasterize``).
+
+    Build with ``gdiff.options.from_config(RasterizeOptions, config["rasterize"], "rasterize")``
+    and pass ``**opts.kwargs()`` to :func:`rasterize`.
+    """
+
+    backend: str = "auto"  # auto | torch | cpp | gsplat
+    near_plane: float = 0.01  # camera-frame z below which Gaussians are culled (world units)
+    far_plane: float = 1e10  # camera-frame z above which Gaussians are culled
+    eps2d: float = 0.3  # 2D low-pass dilation (px^2)
+    radius_clip: float = 0.0  # cull Gaussians with a radius (px) <= this
+
+    def __post_init__(self):
+        if self.backend not in BACKENDS:
+            raise ValueError(f"backend must be one of {', '.join(BACKENDS)}, got {self.backend!r}")
+        if not 0 < self.near_plane < self.far_plane:
+            raise ValueError("need 0 < near_plane < far_plane")
+        if self.eps2d < 0 or self.radius_clip < 0:
+            raise ValueError("eps2d and radius_clip must be >= 0")
+
+    def kwargs(self) -> dict[str, Any]:
+        """Keyword arguments for :func:`rasterize`."""
+        return dataclasses.asdict(self)
 
 
 # --------------------------------------------------------------------------------------------

@@ -61,10 +61,13 @@ void run_tasks(int64_t n_tasks, int n_threads, F fn) {
 int num_threads() { return std::max(1, at::get_num_threads()); }
 
 // Pixel index range [lo, hi] of the 3-sigma box of a Gaussian along one axis (not clipped).
+// Clamped to +-1e9 before the cast so huge or NaN values stay defined (and off the image).
 template <typename scalar_t>
 inline void box_range(scalar_t m, scalar_t e, int64_t& lo, int64_t& hi) {
-  lo = (int64_t)std::floor(m - e - (scalar_t)0.5);
-  hi = (int64_t)std::ceil(m + e - (scalar_t)0.5);
+  const double lim = 1e9;
+  lo = (int64_t)std::fmax(-lim, std::fmin(lim, (double)std::floor(m - e - (scalar_t)0.5)));
+  hi = (int64_t)std::fmax(-lim, std::fmin(lim, (double)std::ceil(m + e - (scalar_t)0.5)));
+  if (std::isnan((double)m) || std::isnan((double)e)) { lo = 1; hi = 0; }
 }
 
 struct Bins {

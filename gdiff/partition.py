@@ -44,7 +44,7 @@ UNCHANGED, CHANGED = 0, 1
 class PartitionOptions:
     """Options of the ``partition`` stage (config section ``partition``)."""
 
-    iterations: int = 3000            # fine-tuning steps (one training image per step)
+    iterations: int = 2000            # fine-tuning steps (one training image per step)
     encoding_dim: int = 16            # length of the per-Gaussian classification encoding
     lambda_2d: float = 1.0            # weight of the BCE between rendered and target masks
     lambda_3d: float = 2.0            # weight of the kNN KL regulariser L3d

@@ -408,6 +408,14 @@ def test_cli_renders_change_map_at_an_arbitrary_pose(tiny_partition, tmp_path, c
                        "--out", str(out2), "--width", "64", "--height", "48"]) == 0
     union = render_change_map(pm, pm.camera.with_pose(c2w).scaled(0.5), None)["mask"]
     np.testing.assert_array_equal(read_mask(out2), union)
+    # a camera of a cameras.json (an eval view), picked by its image path
+    from gdiff.cameras import load_cameras
+
+    cams = res / "poses" / "cameras.json"
+    ev = [c for c in load_cameras(cams) if c.image == "eval/after/001.png"][0]
+    assert gdiff_main(["change-map", "--model", str(model), "--cameras", str(cams), "--frame",
+                       "eval/after/001.png", "--t", "0", "--out", str(out2)]) == 0
+    np.testing.assert_array_equal(read_mask(out2), render_change_map(pm, ev, 0.0)["mask"])
     # user errors are one-line messages with status 2
     assert gdiff_main(["change-map", "--model", str(res / "fit" / "model.pt"), "--pose",
                        *pose, "--out", str(out2)]) == 2

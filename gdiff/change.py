@@ -7,14 +7,16 @@ For every pose of a path the ID maps at t=0 and t=1 (one shared ID space, see
   different masks (IoU < ``presence_iou``), is a *candidate* change at that pose;
 * the candidate is *confirmed* by evidence inside its mask that the scene really differs there:
   the fraction of pixels whose rendered depth differs between the two times by more than
-  ``depth_change_rel`` (illumination-invariant; used when depth exists), otherwise the fraction
-  whose illumination-invariant appearance differs (grey-world-normalised chromaticity, local
-  normalised cross-correlation of log intensity) - this rejects segments that only exist because
-  a shadow or a highlight moved;
+  ``depth_change_rel`` (when depth exists), or a texture that does not correlate between the
+  two times (:mod:`gdiff.appearance`: log-colour gradients with the shading removed, invariant
+  to light direction, colour and strength); untextured regions without depth fall back to
+  per-pixel chromaticity. This rejects segments that only exist because a shadow or a
+  highlight moved, and confirms a replaced object whose depth barely changed;
 * per ID, over all poses where it is visible, the share of confirmed candidates decides
   (``vote_frac``): changed IDs are changed on every frame (temporal consistency);
 * a changed ID is ``removed`` (seen at t0 only), ``added`` (t1 only) or ``moved`` (seen at both
-  at different places, or a removed/added pair with the same appearance and size).
+  at different places, or a removed/added pair with the same appearance and size standing at
+  different places - a removed/added pair at one place is a replacement and keeps its types).
 
 Masks per pose: ``mask_t0`` = changed instances visible at t0 (removed, moved away),
 ``mask_t1`` = changed instances visible at t1 (added, moved in), union = the change map.
@@ -31,6 +33,7 @@ import numpy as np
 import pandas as pd
 from scipy.optimize import linear_sum_assignment
 
+from .appearance import region_similarity, texture_gradients
 from .errors import ConfigError
 from .io import srgb_to_linear
 
@@ -47,11 +50,15 @@ class CompareOptions:
         below this is "drastically different" (candidate change).
     min_area: instance masks smaller than this (pixels) are ignored at that pose.
     depth_change_rel: a pixel's depth changed when |z0 - z1| / min(z0, z1) exceeds this.
-    chroma_tol: a pixel's chromaticity (grey-world normalised, L1) changed above this.
-    ncc_min: local normalised cross-correlation of log intensity (7x7) below this on textured
-        pixels counts as an appearance change.
+    same_similarity: a candidate is confirmed when the texture of its changed region correlates
+        less than this between the two times (:mod:`gdiff.appearance`; lighting-invariant).
+    min_texture: RMS log-colour gradient below which a region is untextured (no texture test).
+    chroma_tol: a pixel's chromaticity (grey-world normalised, L1) changed above this (fallback
+        for untextured regions without depth).
+    ncc_min: local normalised cross-correlation of log intensity (9x9) below this on textured
+        pixels counts as an appearance change (same fallback).
     min_evidence: a candidate is confirmed at a pose when at least this fraction of its mask
-        shows evidence of change (depth when available, appearance otherwise).
+        changed depth (or, untextured and without depth, chromaticity).
     vote_frac: an ID is changed when confirmed at >= this fraction of the poses where visible.
     moved_similarity: a removed and an added instance are one moved object when the
         Bhattacharyya coefficient of their chromaticity histograms is >= this and their metric
@@ -66,9 +73,12 @@ class CompareOptions:
     min_evidence: float = 0.3
     vote_frac: float = 0.5
     moved_similarity: float = 0.85
+    same_similarity: float = 0.4
+    min_texture: float = 0.03
 
     def __post_init__(self):
-        for k in ("presence_iou", "min_evidence", "vote_frac", "moved_similarity"):
+        for k in ("presence_iou", "min_evidence", "vote_frac", "moved_similarity",
+                  "same_similarity"):
             if not 0.0 <= getattr(self, k) <= 1.0:
                 raise ConfigError(f"config key 'compare.{k}' must lie in [0, 1]")
 
@@ -151,21 +161,53 @@ def _chroma_hist(rgb: np.ndarray, mask: np.ndarray, bins: int = 8) -> np.ndarray
 def pose_stats(ids0: np.ndarray, ids1: np.ndarray, o: CompareOptions,
                rgb0: np.ndarray | None = None, rgb1: np.ndarray | None = None,
                depth0: np.ndarray | None = None, depth1: np.ndarray | None = None,
-               focal: float | None = None) -> dict[int, dict]:
+               focal: float | None = None, camera=None) -> dict[int, dict]:
     """Compare the ID maps int [H, W] of one pose at t0 and t1.
 
     Returns, per ID visible at this pose: ``area0``, ``area1`` (pixels), ``candidate`` (absent
-    at one time or IoU < presence_iou), ``evidence`` (fraction of the candidate's masks showing
-    change; 1.0 when there is no image/depth to check), ``confirmed``, ``hist`` (chromaticity
-    histogram, for moved pairing) and ``size`` (metric size sqrt(area) * z / f when depth and
-    ``focal`` are known, else sqrt(area) in pixels).
+    at one time or IoU < presence_iou), ``evidence`` (fraction of the candidate's changed region
+    whose depth changed; NaN without depth), ``similarity`` (texture similarity of that region
+    between the two times, :mod:`gdiff.appearance`; NaN when untextured or without images),
+    ``confirmed``, ``hist`` (chromaticity histogram, for moved pairing), ``size`` (metric size
+    sqrt(area) * z / f when depth and ``focal`` are known, else sqrt(area) in pixels) and
+    ``pos`` (median world point [3] with depth and ``camera``, else the mask centroid in
+    pixels; same units as ``size``).
+
+    A candidate is confirmed when its depth changed (``evidence >= min_evidence``) or its
+    texture differs between the times (``similarity < same_similarity``); without depth an
+    untextured candidate falls back to the per-pixel chromaticity test (``chroma_tol``). With
+    depth, pixels of the candidate that are hidden at the other time behind a nearer surface
+    are left out of both tests (the instance may still stand behind the newcomer); a candidate
+    hidden so for more than three quarters is not a candidate at this pose.
     """
-    if depth0 is not None and depth1 is not None:
-        ev_map = depth_change(depth0, depth1, o.depth_change_rel)
-    elif rgb0 is not None and rgb1 is not None:
-        ev_map = appearance_change(rgb0, rgb1, o.chroma_tol, o.ncc_min)
-    else:
-        ev_map = None
+    has_depth = depth0 is not None and depth1 is not None
+    has_rgb = rgb0 is not None and rgb1 is not None
+    cache: dict[str, np.ndarray] = {}
+
+    def ev_depth():
+        if "depth" not in cache:
+            cache["depth"] = depth_change(depth0, depth1, o.depth_change_rel)
+        return cache["depth"]
+
+    def nearer():
+        """(t1 surface nearer than t0, t0 nearer than t1), bool [H, W] each."""
+        if "near1" not in cache:
+            z0 = np.where(np.isfinite(depth0) & (depth0 > 0), depth0, np.inf)
+            z1 = np.where(np.isfinite(depth1) & (depth1 > 0), depth1, np.inf)
+            cache["near1"] = z1 < z0 * (1 - o.depth_change_rel)
+            cache["near0"] = z0 < z1 * (1 - o.depth_change_rel)
+        return cache["near1"], cache["near0"]
+
+    def grads():
+        if "g0" not in cache:
+            cache["g0"], cache["g1"] = texture_gradients(rgb0), texture_gradients(rgb1)
+        return cache["g0"], cache["g1"]
+
+    def ev_chroma():
+        if "chroma" not in cache:
+            cache["chroma"] = appearance_change(rgb0, rgb1, o.chroma_tol, o.ncc_min)
+        return cache["chroma"]
+
     out: dict[int, dict] = {}
     labels = np.union1d(np.unique(ids0), np.unique(ids1))
     for t in labels[labels != 0]:
@@ -178,23 +220,55 @@ def pose_stats(ids0: np.ndarray, ids1: np.ndarray, o: CompareOptions,
         if a0 and a1:
             iou = (m0 & m1).sum() / (m0 | m1).sum()
             cand = iou < o.presence_iou
-            region = m0 ^ m1
+            region0, region1 = m0 & ~m1, m1 & ~m0
         else:
             cand = True
-            region = m0 if a0 else m1
-        evidence = 1.0
-        if cand and ev_map is not None:
-            evidence = float(ev_map[region].mean()) if region.any() else 0.0
+            region0, region1 = (m0, np.zeros_like(m0)) if a0 else (np.zeros_like(m1), m1)
+        evidence, sim, confirmed = float("nan"), float("nan"), bool(cand)
+        if cand and (has_depth or has_rgb):
+            region = region0 | region1
+            if has_depth:
+                # pixels hidden at the other time behind a nearer surface say nothing about
+                # the instance (it may stand behind the newcomer): leave them out
+                near1, near0 = nearer()
+                region = (region0 & ~near1) | (region1 & ~near0)
+                if region.sum() < 0.25 * (region0 | region1).sum():
+                    cand = confirmed = False  # mostly hidden at the other time: undecidable
+            if cand and has_depth:
+                evidence = float(ev_depth()[region].mean()) if region.any() else 0.0
+            if cand and has_rgb:
+                sim = region_similarity(*grads(), region, o.min_texture)
+            if cand:
+                confirmed = bool((has_depth and evidence >= o.min_evidence)
+                                 or (sim < o.same_similarity))
+            if cand and not has_depth and np.isnan(sim) and has_rgb and region.any():
+                evidence = float(ev_chroma()[region].mean())
+                confirmed = evidence >= o.min_evidence
         rec = dict(area0=a0, area1=a1, candidate=bool(cand), evidence=evidence,
-                   confirmed=bool(cand and evidence >= o.min_evidence))
+                   similarity=sim, confirmed=confirmed)
         rgb, m, z = (rgb0, m0, depth0) if a0 else (rgb1, m1, depth1)
         rec["hist"] = _chroma_hist(rgb, m) if rgb is not None else None
         size = np.sqrt(m.sum())
         if z is not None and focal:
             size = size * float(np.median(z[m])) / focal
         rec["size"] = float(size)
+        rec["pos"] = _position(m, z, camera)
+        rec["pos_size"] = rec["size"] if len(rec["pos"]) == 3 else float(np.sqrt(m.sum()))
         out[int(t)] = rec
     return out
+
+
+def _position(mask: np.ndarray, depth: np.ndarray | None, camera) -> np.ndarray:
+    """Median world point [3] of a mask (depth and camera known), else its pixel centroid [2]."""
+    if depth is not None and camera is not None:
+        from .track import world_points
+
+        pts = world_points(depth, camera)[mask]
+        pts = pts[np.isfinite(pts).all(1)]
+        if len(pts):
+            return np.median(pts, 0)
+    jj, ii = np.nonzero(mask)
+    return np.array([ii.mean() + 0.5, jj.mean() + 0.5])
 
 
 def decide(stats: list[tuple[object, dict[int, dict]]], o: CompareOptions) -> pd.DataFrame:
@@ -204,7 +278,7 @@ def decide(stats: list[tuple[object, dict[int, dict]]], o: CompareOptions) -> pd
     at each time), n_confirmed, first, last (pose names), area (mean pixels).
     """
     acc: dict[int, dict] = defaultdict(lambda: dict(n0=0, n1=0, n=0, conf=0, poses=[],
-                                                    area=[], hist=None, size=[]))
+                                                    area=[], hist=None, size=[], pos={}))
     for name, st in stats:
         for t, r in st.items():
             a = acc[t]
@@ -215,6 +289,8 @@ def decide(stats: list[tuple[object, dict[int, dict]]], o: CompareOptions) -> pd
             a["poses"].append(name)
             a["area"].append(max(r["area0"], r["area1"]))
             a["size"].append(r["size"])
+            if r.get("pos") is not None:
+                a["pos"].setdefault(len(r["pos"]), []).append((r["pos"], r["pos_size"]))
             if r["hist"] is not None:
                 a["hist"] = r["hist"] if a["hist"] is None else a["hist"] + r["hist"]
     rows = []
@@ -231,11 +307,22 @@ def decide(stats: list[tuple[object, dict[int, dict]]], o: CompareOptions) -> pd
         rows.append(dict(id=t, changed=bool(changed), type=typ, partner=0, n_t0=a["n0"],
                          n_t1=a["n1"], n_confirmed=a["conf"], first=a["poses"][0],
                          last=a["poses"][-1], area=float(np.mean(a["area"])),
-                         _hist=a["hist"], _size=float(np.median(a["size"]))))
+                         _hist=a["hist"], _size=float(np.median(a["size"])),
+                         _pos=_median_position(a["pos"])))
     df = pd.DataFrame(rows, columns=["id", "changed", "type", "partner", "n_t0", "n_t1",
-                                     "n_confirmed", "first", "last", "area", "_hist", "_size"])
+                                     "n_confirmed", "first", "last", "area", "_hist", "_size",
+                                     "_pos"])
     _pair_moved(df, o)
-    return df.drop(columns=["_hist", "_size"])
+    return df.drop(columns=["_hist", "_size", "_pos"])
+
+
+def _median_position(by_dim: dict[int, list]) -> tuple[np.ndarray, float] | None:
+    """(median position, median size) over poses, world points preferred over pixels."""
+    for d in (3, 2):
+        if by_dim.get(d):
+            return (np.median(np.stack([p for p, _ in by_dim[d]]), 0),
+                    float(np.median([s for _, s in by_dim[d]])))
+    return None
 
 
 def _bhattacharyya(h1, h2) -> float:
@@ -244,8 +331,18 @@ def _bhattacharyya(h1, h2) -> float:
     return float(np.sqrt(h1 / h1.sum() * h2 / h2.sum()).sum())
 
 
+def _apart(p0, p1) -> bool:
+    """Two (position, size) records lie at different places: the distance between them exceeds
+    their mean size, so their footprints do not overlap (a replacement stands where the removed
+    object stood; a moved object stands elsewhere). Unknown positions count as apart."""
+    if p0 is None or p1 is None or len(p0[0]) != len(p1[0]):
+        return True
+    return float(np.linalg.norm(p0[0] - p1[0])) > 0.5 * (p0[1] + p1[1])
+
+
 def _pair_moved(df: pd.DataFrame, o: CompareOptions) -> None:
-    """Pair removed and added IDs of the same appearance and size into ``moved`` (in place)."""
+    """Pair removed and added IDs of the same appearance and size, at different places, into
+    ``moved`` (in place)."""
     rem = df.index[df["type"] == "removed"].tolist()
     add = df.index[df["type"] == "added"].tolist()
     if not rem or not add:
@@ -254,9 +351,10 @@ def _pair_moved(df: pd.DataFrame, o: CompareOptions) -> None:
     for i, r in enumerate(rem):
         for j, a in enumerate(add):
             s0, s1 = df.at[r, "_size"], df.at[a, "_size"]
-            if max(s0, s1) > 1.5 * min(s0, s1):
+            if max(s0, s1) > 1.5 * min(s0, s1) or not _apart(df.at[r, "_pos"], df.at[a, "_pos"]):
                 continue
             S[i, j] = _bhattacharyya(df.at[r, "_hist"], df.at[a, "_hist"])
+    S[S < o.moved_similarity] = 0.0  # only eligible pairs compete in the assignment
     rows, cols = linear_sum_assignment(-S)
     for i, j in zip(rows, cols):
         if S[i, j] >= o.moved_similarity:
@@ -296,14 +394,15 @@ def detect_changes_pair(rgb0: np.ndarray, rgb1: np.ndarray, depth0: np.ndarray |
         K = np.asarray(K, float)
         cam = Camera(W, H, K[0, 0], K[1, 1], K[0, 2], K[1, 2])
     frames = []
-    for rgb, z in ((rgb0, depth0), (rgb1, depth1)):
+    for time, (rgb, z) in enumerate(((rgb0, depth0), (rgb1, depth1))):
         inst = seg.segment(rgb, z, None, K)
         frames.append(TrackFrame(labels=labels_from_instances(inst, (H, W)), rgb=rgb, depth=z,
-                                 camera=cam if z is not None else None, pose_key="pair"))
+                                 camera=cam if z is not None else None, pose_key="pair",
+                                 time=time))
     to = track_options or TrackOptions()
     to = TrackOptions(**{**to.__dict__, "vote_window": 0})  # two frames: nothing to vote on
     res = track_sequence(frames, to)
     st = pose_stats(res.ids[0], res.ids[1], o, rgb0, rgb1, depth0, depth1,
-                    focal=float(K[0, 0]) if K is not None else None)
+                    focal=float(K[0, 0]) if K is not None else None, camera=cam)
     df = decide([("pair", st)], o)
     return change_masks(res.ids[0], res.ids[1], df.loc[df["changed"], "id"].tolist())

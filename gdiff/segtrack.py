@@ -74,7 +74,8 @@ def track_paths(frames: dict[Key, dict], segmenter: Segmenter,
                                  cam.K if cam is not None else None)
         tframes.append(TrackFrame(labels=labels_from_instances(inst, f["rgb"].shape[:2]),
                                   rgb=f["rgb"], depth=f.get("depth"), camera=cam,
-                                  pose_key=(key[0], key[2]), name=key))
+                                  pose_key=(key[0], key[2]), name=key,
+                                  time=TIMES.index(key[1])))
     res = track_sequence(tframes, track_options)
     ids = {key: m for key, m in zip(order, res.ids)}
     tracks = res.tracks.copy()
@@ -103,7 +104,8 @@ def compare_paths(ids: dict[Key, np.ndarray], frames: dict[Key, dict] | None,
         cam = f0.get("camera")
         stats.append((f"{p}/{i:05d}", pose_stats(
             ids[(p, "t0", i)], ids[(p, "t1", i)], o, f0.get("rgb"), f1.get("rgb"),
-            f0.get("depth"), f1.get("depth"), focal=cam.fx if cam is not None else None)))
+            f0.get("depth"), f1.get("depth"), focal=cam.fx if cam is not None else None,
+            camera=cam)))
     df = decide(stats, o)
     changed = df.loc[df["changed"], "id"].tolist()
     masks = {(p, i): change_masks(ids[(p, "t0", i)], ids[(p, "t1", i)], changed)

@@ -12,13 +12,24 @@ associates. For every frame in chain order:
    two frames of the same pose (``pose_key``) without depth, the identity map is used.
 2. *Same-pose link* (``link_same_pose``): when the frame of the same pose at the other time has
    already been tracked, its ID map is a second source. This is what makes the t0/t1 comparison
-   work at every pose, not only at the join of the chain.
+   work at every pose, not only at the join of the chain. A link between the two times must
+   also pass an appearance test (:mod:`gdiff.appearance`): the track's mask at the other time
+   and the segment, compared pixel for pixel (same pose), must show correlated log-colour
+   texture (``link_min_similarity``). This breaks the link when an object was *replaced* by
+   another of similar size at the same spot (the depth check alone lets it pass), and is not
+   fooled by a lighting change. Sources at the other time and another pose are not used when
+   the frames carry their time (IDs cross times only where the two times are pixel-aligned).
 3. *Merge*: predicted masks and current segments are paired by mask IoU with the Hungarian
    algorithm (gate ``iou_gate``); unmatched segments start new tracks (IDs are never reused);
    tracks unseen for more than ``max_missed`` frames are dropped (they may still be re-found by
    the same-pose link, which is re-identification of the same object).
 4. *Vote* (``vote_window``): tracks seen in fewer than half of the first ``vote_window`` frames
    after their birth are flicker; their pixels are set to 0 (no instance).
+5. *Merge by 3D position* (``merge_3d``, frames with depth, cameras and time): two tracks
+   that never share a frame, are seen at the same times and sit at the same place in the world
+   (their median 3D points closer than ``merge_dist_frac`` x their size at every time both are
+   seen) are one object and get one ID; e.g. a removed object seen on both paths, whose track
+   cannot cross the after-time frames between them.
 
 Chain order (see :func:`chain_order`): path p1 at t0 forward, then p1 at t1 backward (the join
 is the same pose at the other time), then p2 at t1 forward and p2 at t0 backward.
@@ -36,6 +47,7 @@ import numpy as np
 import pandas as pd
 from scipy.optimize import linear_sum_assignment
 
+from .appearance import region_similarity, texture_gradients
 from .cameras import Camera
 from .errors import ConfigError
 from .log import progress
@@ -59,6 +71,14 @@ class TrackOptions:
     vote_window: tracks seen in fewer than ceil(vote_window / 2) of their first vote_window
         frames are removed (0 disables voting).
     flow_fb_tol: optical-flow forward-backward consistency tolerance, pixels.
+    link_min_similarity: a link between the two times at one pose needs at least this
+        correlation of the log-colour texture of the two masks (see :mod:`gdiff.appearance`);
+        masks with too little texture (``min_texture``) keep the link. 0 disables the test.
+    min_texture: RMS log-colour gradient (per pixel, after removing shading) below which a
+        region counts as untextured and its appearance is not compared.
+    merge_3d: merge tracks of one object by 3D position (needs depth, cameras, times).
+    merge_dist_frac: two tracks are at the same place when their median 3D points are closer
+        than this fraction of the object's size (square root of its metric area).
     """
 
     warp: str = "auto"
@@ -68,6 +88,10 @@ class TrackOptions:
     link_same_pose: bool = True
     vote_window: int = 5
     flow_fb_tol: float = 1.5
+    link_min_similarity: float = 0.4
+    min_texture: float = 0.03
+    merge_3d: bool = True
+    merge_dist_frac: float = 0.5
 
     def __post_init__(self):
         if self.warp not in WARP_MODES:
@@ -77,6 +101,11 @@ class TrackOptions:
             raise ConfigError("config key 'track.iou_gate' must lie in (0, 1]")
         if self.max_missed < 0 or self.vote_window < 0:
             raise ConfigError("config keys 'track.max_missed' and 'track.vote_window' must be >= 0")
+        if not -1.0 <= self.link_min_similarity <= 1.0:
+            raise ConfigError("config key 'track.link_min_similarity' must lie in [-1, 1]")
+        if self.min_texture < 0 or self.merge_dist_frac < 0:
+            raise ConfigError("config keys 'track.min_texture' and 'track.merge_dist_frac' "
+                              "must be >= 0")
 
 
 @dataclass
@@ -90,6 +119,7 @@ class TrackFrame:
     pose_key: hashable naming the pose (e.g. ("p1", 7)); frames of the same pose at the two
         times share it. None = no same-pose partner.
     name: free label for logs and tables (e.g. ("p1", "t0", 7)).
+    time: 0 (before) or 1 (after), or None when unknown.
     """
 
     labels: np.ndarray
@@ -98,6 +128,7 @@ class TrackFrame:
     camera: Camera | None = None
     pose_key: Hashable | None = None
     name: Hashable | None = None
+    time: float | None = None
 
 
 @dataclass
@@ -245,6 +276,10 @@ def _iou_table(pred: np.ndarray, labels: np.ndarray) -> tuple[np.ndarray, np.nda
     return tids[tmask], sids[smask], iou[np.ix_(tmask, smask)]
 
 
+def _time_of(fr: TrackFrame) -> float | None:
+    return None if fr.time is None else float(fr.time)
+
+
 def track_sequence(frames: list[TrackFrame], options: TrackOptions | None = None,
                    first_id: int = 1) -> TrackResult:
     """Track ``frames`` (in chain order) and return one shared-ID map per frame.
@@ -258,6 +293,14 @@ def track_sequence(frames: list[TrackFrame], options: TrackOptions | None = None
     seen_at: dict[int, list[int]] = {}  # track id -> chain indices where observed
     areas: dict[int, int] = {}
     done_by_pose: dict[Hashable, int] = {}
+    grads: dict[int, np.ndarray] = {}
+    n_broken = 0
+
+    def texture(k: int) -> np.ndarray:
+        if k not in grads:
+            grads[k] = texture_gradients(frames[k].rgb)
+        return grads[k]
+
     for k, fr in enumerate(progress(frames, desc="track", total=len(frames))):
         labels = np.asarray(fr.labels)
         sources: list[tuple[int, np.ndarray]] = []
@@ -275,13 +318,30 @@ def track_sequence(frames: list[TrackFrame], options: TrackOptions | None = None
                 sources.append((f, out[f]))
         best: dict[tuple[int, int], float] = {}
         for f, ids_src in sources:
-            pred = propagate(ids_src, frames[f], fr, o)
+            src = frames[f]
+            cross_time = (_time_of(src) is not None and _time_of(fr) is not None
+                          and _time_of(src) != _time_of(fr))
+            same_pose = _same_pose(src, fr)
+            if cross_time and not same_pose:
+                continue  # IDs cross times only where the two times are pixel-aligned
+            check = (cross_time or (same_pose and src.time is None)) and \
+                o.link_min_similarity > -1 and src.rgb is not None and fr.rgb is not None
+            pred = propagate(ids_src, src, fr, o)
             tids, sids, iou = _iou_table(pred, labels)
             for a, t in enumerate(tids):
                 for b, s in enumerate(sids):
-                    if iou[a, b] > 0:
-                        key = (int(t), int(s))
-                        best[key] = max(best.get(key, 0.0), float(iou[a, b]))
+                    if iou[a, b] <= 0:
+                        continue
+                    if check and iou[a, b] >= o.iou_gate:
+                        sim = region_similarity(texture(f), texture(k),
+                                                (ids_src == t) & (labels == s), o.min_texture)
+                        if sim < o.link_min_similarity:  # NaN (untextured) keeps the link
+                            n_broken += 1
+                            log.debug("frame %s: link of track %d to segment %d broken "
+                                      "(texture similarity %.2f)", fr.name, t, s, sim)
+                            continue
+                    key = (int(t), int(s))
+                    best[key] = max(best.get(key, 0.0), float(iou[a, b]))
         seg_ids = [int(s) for s in np.unique(labels) if s != 0]
         assign: dict[int, int] = {}
         if best and seg_ids:
@@ -310,6 +370,7 @@ def track_sequence(frames: list[TrackFrame], options: TrackOptions | None = None
             areas[t] = areas.get(t, 0) + int((labels == s).sum())
         if fr.pose_key is not None:
             done_by_pose[fr.pose_key] = k
+        grads.pop(k - 2 * (o.max_missed + 2), None)  # keep memory bounded on long chains
     n = len(frames)
     removed = set()
     if o.vote_window > 0:
@@ -321,9 +382,122 @@ def track_sequence(frames: list[TrackFrame], options: TrackOptions | None = None
         if removed:
             rm = np.array(sorted(removed))
             out = [np.where(np.isin(m, rm), 0, m).astype(np.int32) for m in out]
+    merged = {}
+    if o.merge_3d:
+        merged = merge_by_position(out, frames, o.merge_dist_frac)
+        if merged:
+            lut = np.arange(max(next_id, 1), dtype=np.int32)
+            for a, b in merged.items():
+                lut[a] = b
+            out = [lut[m] for m in out]
+            for a, b in merged.items():
+                if a in seen_at:
+                    seen_at[b] = sorted(seen_at.get(b, []) + seen_at.pop(a))
+                    areas[b] = areas.get(b, 0) + areas.pop(a, 0)
     rows = [dict(id=t, first=ks[0], last=ks[-1], n_frames=len(ks),
                  mean_area=areas[t] / len(ks)) for t, ks in sorted(seen_at.items())
             if t not in removed]
-    log.info("tracked %d frames: %d tracks (%d removed by voting)", n, len(rows), len(removed))
+    log.info("tracked %d frames: %d tracks (%d removed by voting, %d merged by 3D position, "
+             "%d cross-time links broken by appearance)", n, len(rows), len(removed),
+             len(merged), n_broken)
     return TrackResult(ids=out, tracks=pd.DataFrame(
         rows, columns=["id", "first", "last", "n_frames", "mean_area"]))
+
+
+def world_points(depth: np.ndarray, camera: Camera) -> np.ndarray:
+    """World points [H, W, 3] of a z-depth map [H, W] seen by ``camera`` (pixel centres +0.5,
+    OpenCV axes); NaN where the depth is not finite and positive."""
+    z = np.asarray(depth, np.float64)
+    z = np.where(np.isfinite(z) & (z > 0), z, np.nan)
+    H, W = z.shape
+    u = (np.arange(W) + 0.5 - camera.cx) / camera.fx
+    v = (np.arange(H) + 0.5 - camera.cy) / camera.fy
+    P = np.stack([u[None, :] * z, v[:, None] * z, z], -1)
+    return P @ camera.c2w[:3, :3].T + camera.c2w[:3, 3]
+
+
+def track_positions(ids: list[np.ndarray], frames: list[TrackFrame]
+                    ) -> dict[int, dict[float, tuple[np.ndarray, float]]]:
+    """Per track and time: (median world point [3], metric size) over all its observations.
+
+    The size is the median over frames of sqrt(area) x median depth / focal length (scene
+    units). Frames without depth, camera or time are skipped.
+    """
+    acc: dict[int, dict[float, list]] = {}
+    for m, fr in zip(ids, frames):
+        if fr.depth is None or fr.camera is None or fr.time is None:
+            continue
+        P = None
+        tids, counts = np.unique(m, return_counts=True)
+        for t, c in zip(tids, counts):
+            if t == 0:
+                continue
+            if P is None:
+                P = world_points(fr.depth, fr.camera)
+            pts = P[m == t]
+            pts = pts[np.isfinite(pts).all(1)]
+            if len(pts) < 4:
+                continue
+            zc = np.median(np.asarray(fr.depth)[m == t])
+            size = np.sqrt(c) * zc / fr.camera.fx
+            acc.setdefault(int(t), {}).setdefault(float(fr.time), []).append(
+                (np.median(pts, 0), size))
+    out = {}
+    for t, per_time in acc.items():
+        out[t] = {tm: (np.median(np.stack([p for p, _ in v]), 0), float(np.median([s for _, s in v])))
+                  for tm, v in per_time.items()}
+    return out
+
+
+def merge_by_position(ids: list[np.ndarray], frames: list[TrackFrame],
+                      dist_frac: float) -> dict[int, int]:
+    """Tracks of one object by 3D position (see the module docstring, step 5).
+
+    Returns {track id: id it merges into} (the smaller ID of a group is kept).
+    """
+    pos = track_positions(ids, frames)
+    if len(pos) < 2:
+        return {}
+    frames_of: dict[int, set[int]] = {}
+    for k, m in enumerate(ids):
+        for t in np.unique(m):
+            if t:
+                frames_of.setdefault(int(t), set()).add(k)
+    parent = {t: t for t in pos}
+
+    def root(t):
+        while parent[t] != t:
+            parent[t] = parent[parent[t]]
+            t = parent[t]
+        return t
+
+    tr = sorted(pos)
+    for i, a in enumerate(tr):
+        for b in tr[i + 1:]:
+            if set(pos[a]) != set(pos[b]) or frames_of.get(a, set()) & frames_of.get(b, set()):
+                continue
+            ok = True
+            for tm in pos[a]:
+                (pa, sa), (pb, sb) = pos[a][tm], pos[b][tm]
+                if np.linalg.norm(pa - pb) > dist_frac * min(sa, sb) or \
+                        max(sa, sb) > 1.5 * min(sa, sb):
+                    ok = False
+                    break
+            if ok:
+                ra, rb = root(a), root(b)
+                if ra != rb:
+                    parent[max(ra, rb)] = min(ra, rb)
+    # a group may merge only tracks that never share a frame
+    out = {}
+    groups: dict[int, list[int]] = {}
+    for t in tr:
+        groups.setdefault(root(t), []).append(t)
+    for r, members in groups.items():
+        used: set[int] = set()
+        for t in sorted(members):
+            if frames_of.get(t, set()) & used:
+                continue
+            used |= frames_of.get(t, set())
+            if t != r:
+                out[t] = r
+    return out

@@ -193,12 +193,13 @@ def find_eval_views(scene_dir: str | Path, cameras_json: str | Path | None = Non
 
 
 def build_methods(options: EvalOptions, pmodel: Any = None, render: Callable | None = None,
-                  detect: Callable | None = None) -> dict[str, Callable]:
+                  detect: Callable | None = None, **idcompare_kwargs) -> dict[str, Callable]:
     """The methods named in ``options.methods``, ready for :func:`evaluate_scene`.
 
     ``pmodel``: the trained partition model (needed for ``partition``); ``render(camera, t)``:
     optional renderer standing in for missing eval images; ``detect``: override of
-    ``gdiff.change.detect_changes_pair`` for ``idcompare``.
+    ``gdiff.change.detect_changes_pair`` for ``idcompare``; ``idcompare_kwargs`` (e.g.
+    ``segment_options=``) are passed on to it.
     """
     out: dict[str, Callable] = {}
     for name in options.methods:
@@ -206,7 +207,7 @@ def build_methods(options: EvalOptions, pmodel: Any = None, render: Callable | N
             out[name] = pixel_diff_method(options.pixel_blur_sigma, options.pixel_min_threshold,
                                           render=render)
         elif name == "idcompare":
-            out[name] = idcompare_method(detect=detect, render=render)
+            out[name] = idcompare_method(detect=detect, render=render, **idcompare_kwargs)
         elif name == "partition":
             if pmodel is None:
                 raise ConfigError("evaluate.methods lists 'partition' but no partition model "
@@ -229,6 +230,23 @@ def model_renderer(model: Any) -> Callable[[Camera, float], np.ndarray]:
         return np.clip(rgb[0] if rgb.ndim == 4 else rgb, 0.0, 1.0)
 
     return render
+
+
+def evaluate_workflow_scene(scene_dir: str | Path, cameras_json: str | Path,
+                            partition_model: str | Path, out_dir: str | Path, scene_name: str,
+                            options: EvalOptions, segment_options: dict | None = None,
+                            device: str = "auto") -> pd.DataFrame:
+    """The ``evaluate`` rule: load the partition model (whose fitted 4D model also renders any
+    eval image a dataset lacks) and score every method of ``options.methods`` side by side."""
+    from .options import from_config
+    from .partition import load_partition_model  # lazy: stage module
+    from .segment import SegmentOptions
+
+    pmodel = load_partition_model(partition_model, device)
+    seg = from_config(SegmentOptions, segment_options, "segment")
+    methods = build_methods(options, pmodel=pmodel, render=model_renderer(pmodel.fit),
+                            segment_options=seg)
+    return evaluate_scene(scene_dir, cameras_json, out_dir, scene_name, methods, options)
 
 
 # ---------------------------------------------------------------------------------- scoring

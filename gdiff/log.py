@@ -40,6 +40,24 @@ def setup_logging(log_path: str | os.PathLike | None = None, level: int = loggin
     root.propagate = False
 
 
+class _LineStream:
+    """File-like wrapper that turns tqdm's carriage-return redraws into one line per update,
+    so a log file shows a readable history of the progress bar."""
+
+    def __init__(self, stream):
+        self._stream = stream
+
+    def write(self, s: str) -> int:
+        s = s.replace("\r", "\n")
+        lines = [ln for ln in s.split("\n") if ln.strip()]
+        if lines:
+            self._stream.write("\n".join(lines) + "\n")
+        return len(s)
+
+    def flush(self) -> None:
+        self._stream.flush()
+
+
 def progress(iterable: Iterable[T] | None = None, desc: str = "", total: int | None = None,
              **kw) -> "tqdm[T]":
     """A tqdm progress bar on stderr that stays readable in log files.
@@ -52,4 +70,5 @@ def progress(iterable: Iterable[T] | None = None, desc: str = "", total: int | N
     kw.setdefault("dynamic_ncols", interactive)
     kw.setdefault("ascii", not interactive)
     kw.setdefault("disable", os.environ.get("GDIFF_NO_PROGRESS") == "1")
-    return tqdm(iterable, desc=desc, total=total, file=sys.stderr, **kw)
+    stream = sys.stderr if interactive else _LineStream(sys.stderr)
+    return tqdm(iterable, desc=desc, total=total, file=stream, **kw)

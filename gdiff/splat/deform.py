@@ -75,7 +75,7 @@ class HexPlane(nn.Module):
                 if b == 3:
                     p = torch.ones(shape)
                 else:
-                    p = torch.empty(shape).uniform_(0.1, 0.5)
+                    p = torch.empty(shape).uniform_(0.5, 1.5)
                 self.grids.append(nn.Parameter(p))
         self.register_buffer("aabb", torch.tensor([[-1.0] * 3, [1.0] * 3]))
 

@@ -90,10 +90,10 @@ class FitOptions:
     lr_opacities: float = 5e-2
     lr_sh0: float = 2.5e-3
     lr_shN: float = 1.25e-4
-    lr_grid: float = 1.6e-3  # HexPlane planes (normalised coordinates), decays over fine phase
-    lr_grid_final: float = 1.6e-4
-    lr_deform: float = 1.6e-4  # deformation MLP (x scene extent), decays over fine phase
-    lr_deform_final: float = 1.6e-5
+    lr_grid: float = 1e-2  # HexPlane planes (normalised coordinates), decays over fine phase
+    lr_grid_final: float = 1e-3
+    lr_deform: float = 1e-3  # deformation MLP (x scene extent), decays over fine phase
+    lr_deform_final: float = 1e-4
     # spherical harmonics
     sh_degree: int = 3
     sh_degree_interval: int = 500  # raise the active degree every N iterations
@@ -120,8 +120,10 @@ class FitOptions:
     hexplane_time_resolution: int = 2
     hexplane_multires: list[int] = field(default_factory=lambda: [1, 2])
     hexplane_features: int = 16
-    deform_width: int = 64
-    deform_depth: int = 1
+    deform_color_degree: int = 0  # SH degree changed by the colour head (0: diffuse colour)
+    deform_width: int = 32  # MLP width
+    deform_depth: int = 2  # layers of the shared MLP trunk
+    deform_head_layers: int = 0  # hidden layers per head (4DGS: 1; costs ~10x more)
     # bookkeeping
     checkpoint_every: int = 500
     keep_checkpoint: bool = False
@@ -158,9 +160,11 @@ class FitOptions:
                             time_resolution=self.hexplane_time_resolution,
                             multires=list(self.hexplane_multires),
                             features=self.hexplane_features, width=self.deform_width,
-                            depth=self.deform_depth, position=self.deform_position,
+                            depth=self.deform_depth, head_layers=self.deform_head_layers,
+                            position=self.deform_position,
                             scale=self.deform_scale, rotation=self.deform_rotation,
-                            opacity=self.deform_opacity, color=self.deform_color)
+                            opacity=self.deform_opacity, color=self.deform_color,
+                            color_degree=self.deform_color_degree)
 
     def thresholds(self) -> DensifyThresholds:
         return DensifyThresholds(self.grow_grad2d, self.grow_scale3d, self.prune_opacity,

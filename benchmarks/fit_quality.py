@@ -1,0 +1,147 @@
+"""Quality and wall time of the fit stage on scenes with ground truth.
+
+For each scene (a gdiff scene folder with ``gt_cameras.json``, e.g. /work/shared/scenes/*, or
+``synth:<preset>`` to generate one): known poses are imported and points triangulated by the
+poses stage (``gdiff.sfm.run_poses``, source known), the 4D model is fitted with
+``FitOptions`` (defaults, or ``--set key=value`` overrides), then
+
+* training views: PSNR / SSIM from ``fit/quality.csv`` (each image at its own time);
+* eval views (novel, never trained on): render t=0 and t=1 at full size and compare with
+  ``eval/before`` and ``eval/after``; also PSNR outside the ground-truth change mask (the
+  unchanged background must look like the real image of that time, lighting included) and
+  the mean |render(t1) - render(t0)| inside vs outside the mask.
+
+Usage::
+
+    nice python benchmarks/fit_quality.py synth:demo /work/shared/scenes/bench_desk \
+        --out /tmp/fitbench [--set fine_iters=3000 ...] [--threads 2]
+
+Writes ``<out>/<scene>/fit/...``, ``<out>/<scene>/eval_views.csv`` and ``<out>/summary.csv``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import shutil
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import torch
+
+from gdiff.cameras import load_cameras
+from gdiff.io import read_image, read_mask
+from gdiff.splat.losses import psnr, ssim
+from gdiff.splat.model import load_model
+from gdiff.splat.render import render
+from gdiff.splat.train import FitOptions, fit_scene
+
+
+def prepare(spec: str, out: Path) -> tuple[str, Path]:
+    """Scene folder with a cameras.json (copied from gt_cameras.json) -> (name, folder)."""
+    if spec.startswith("synth:"):
+        from gdiff.synth import make_scene
+
+        preset = spec.split(":", 1)[1]
+        src = out / f"synth_{preset}" / "source"
+        if not src.is_dir():
+            make_scene(src, preset, 0)
+        name = f"synth_{preset}"
+    else:
+        src = Path(spec)
+        name = src.name
+    work = out / name / "scene"
+    if not work.is_dir():
+        work.mkdir(parents=True)
+        for sub in ("before", "after", "eval"):
+            (work / sub).symlink_to((src / sub).resolve())
+        shutil.copy(src / "gt_cameras.json", work / "cameras.json")
+    return name, work
+
+
+def poses(work: Path, out: Path) -> Path:
+    from gdiff.sfm import PosesOptions, run_poses
+
+    pdir = out / "poses"
+    if not (pdir / "cameras.json").is_file():
+        run_poses(work, pdir, PosesOptions(source="known"))
+    return pdir
+
+
+@torch.no_grad()
+def eval_views(model, cams_json: Path, scene: Path) -> pd.DataFrame:
+    cams = load_cameras(cams_json)
+    rows = []
+    ev = {c.image.split("/")[-1]: c for c in cams if c.set == "eval_before"}
+    for name, cam in sorted(ev.items()):
+        mask_path = scene / "eval" / "masks" / name
+        mask = read_mask(mask_path) if mask_path.is_file() else None
+        r = {}
+        for t, st in ((0, "before"), (1, "after")):
+            gt = torch.from_numpy(read_image(scene / "eval" / st / name))
+            pred = render(model, [cam], float(t), render_mode="RGB")["rgb"][0].clamp(0, 1)
+            r[t] = pred
+            row = {"view": name, "time": t, "psnr": float(psnr(pred, gt)),
+                   "ssim": float(ssim(pred, gt))}
+            if mask is not None and (~mask).any():
+                keep = torch.from_numpy(~mask)
+                row["psnr_unchanged"] = float(psnr(pred[keep], gt[keep]))
+            rows.append(row)
+        if mask is not None and mask.any():
+            diff = (r[1] - r[0]).abs().mean(-1).numpy()
+            rows[-1]["diff_in"] = float(diff[mask].mean())
+            rows[-1]["diff_out"] = float(diff[~mask].mean())
+    return pd.DataFrame(rows)
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawTextHelpFormatter)
+    p.add_argument("scenes", nargs="+")
+    p.add_argument("--out", required=True)
+    p.add_argument("--set", action="append", default=[], help="FitOptions override key=value")
+    p.add_argument("--threads", type=int, default=0)
+    args = p.parse_args(argv)
+    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s: %(message)s")
+    if args.threads:
+        torch.set_num_threads(args.threads)
+    over = {}
+    for kv in args.set:
+        k, v = kv.split("=", 1)
+        over[k] = json.loads(v)
+    opts = FitOptions(**over)
+    out = Path(args.out)
+    summary = []
+    for spec in args.scenes:
+        name, work = prepare(spec, out)
+        sdir = out / name
+        pdir = poses(work, sdir)
+        t0 = time.time()
+        s = fit_scene(work, pdir / "cameras.json", pdir / "points.ply", sdir / "fit", opts, "cpu")
+        wall = time.time() - t0
+        model = load_model(sdir / "fit" / "model.pt", "cpu")
+        ev = eval_views(model, pdir / "cameras.json", work)
+        ev.to_csv(sdir / "eval_views.csv", index=False)
+        row = {"scene": name, "fit_seconds": round(wall, 1), "threads": torch.get_num_threads(),
+               **{k: s[k] for k in ("iterations", "n_gaussians", "width", "height",
+                                    "psnr_t0", "ssim_t0", "psnr_t1", "ssim_t1")}}
+        for t in (0, 1):
+            e = ev[ev["time"] == t]
+            row[f"eval_psnr_t{t}"] = float(e["psnr"].mean())
+            row[f"eval_ssim_t{t}"] = float(e["ssim"].mean())
+            if "psnr_unchanged" in e:
+                row[f"eval_psnr_unchanged_t{t}"] = float(e["psnr_unchanged"].mean())
+        if "diff_in" in ev:
+            row["diff_in"] = float(ev["diff_in"].mean())
+            row["diff_out"] = float(ev["diff_out"].mean())
+        summary.append(row)
+        print(json.dumps(row), flush=True)
+    pd.DataFrame(summary).to_csv(out / "summary.csv", index=False)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

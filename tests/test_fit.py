@@ -1,0 +1,253 @@
+"""The fit stage end to end on a small synthetic scene (gdiff.synth 'tiny', reduced size).
+
+The SfM point cloud is made here by back-projecting the synth scene's ground-truth depth (a
+test helper: the workflow's points come from the poses stage).
+"""
+
+import dataclasses
+import shutil
+from types import SimpleNamespace
+
+import numpy as np
+import pandas as pd
+import pytest
+import torch
+
+from gdiff.cameras import load_cameras, save_cameras
+from gdiff.errors import SceneError, TrainingError
+from gdiff.io import read_image, write_image
+from gdiff.splat.losses import psnr
+from gdiff.splat.model import load_model
+from gdiff.splat.ply import read_gaussians, write_points
+from gdiff.splat.render import render, render_main
+from gdiff.splat.train import FitOptions, fit_scene
+from gdiff.synth import build_scene, get_preset, make_scene
+
+SEED = 3
+DARKEN = 0.7
+
+
+def backprojected_points(synth, cameras, state, fraction=0.08, noise=0.005, seed=0):
+    """SfM-like points: a random fraction of each camera's pixels lifted with true depth."""
+    rng = np.random.default_rng(seed)
+    pts, cols = [], []
+    for cam in cameras:
+        r = synth.render(cam, state, supersample=1)
+        h, w = r["depth"].shape
+        sel = rng.random(h * w) < fraction
+        j, i = np.divmod(np.flatnonzero(sel), w)
+        z = r["depth"].ravel()[sel]
+        x = (i + 0.5 - cam.cx) / cam.fx * z
+        y = (j + 0.5 - cam.cy) / cam.fy * z
+        p = np.stack([x, y, z, np.ones_like(z)], 1) @ cam.c2w.T
+        pts.append(p[:, :3] + rng.normal(0, noise, (len(z), 3)))
+        cols.append(r["rgb"].reshape(-1, 3)[sel])
+    return np.concatenate(pts), np.concatenate(cols)
+
+
+@pytest.fixture(scope="module")
+def scene(tmp_path_factory):
+    root = tmp_path_factory.mktemp("fit")
+    preset = dataclasses.replace(get_preset("tiny"), width=80, height=60, supersample=2,
+                                 n_before=8, n_after=8, n_eval=2)
+    make_scene(root / "scene", preset, SEED)
+    # a global lighting change on top of the object changes: every after image is darker
+    for path in sorted((root / "scene").glob("**/after/*.png")):
+        write_image(path, read_image(path) * DARKEN)
+    synth = build_scene(preset, SEED)
+    cams = sum((synth.cameras(s) for s in ("before", "after", "eval_before", "eval_after")), [])
+    save_cameras(root / "cameras.json", cams)
+    pb = backprojected_points(synth, synth.cameras("before")[::2], "before")
+    pa = backprojected_points(synth, synth.cameras("after")[::2], "after", seed=1)
+    write_points(root / "points.ply", np.concatenate([pb[0], pa[0]]),
+                 np.concatenate([pb[1], pa[1]]))
+    return SimpleNamespace(root=root, dir=root / "scene", cameras=root / "cameras.json",
+                           points=root / "points.ply", synth=synth)
+
+
+def small_options(**kw) -> FitOptions:
+    # a short schedule: faster Gaussian learning rates than the full-length defaults
+    base = dict(coarse_iters=100, fine_iters=100, max_side=80, densify_from=30,
+                densify_every=30, densify_until=170, opacity_reset_every=0,
+                sh_degree_interval=50, checkpoint_every=100, log_every=5,
+                hexplane_resolution=[16, 16, 16], max_gaussians=4000, lr_sh0=5e-3,
+                lr_scales=1e-2)
+    base.update(kw)
+    return FitOptions(**base)
+
+
+@pytest.fixture(scope="module")
+def fitted(scene):
+    out = scene.root / "out"
+    summary = fit_scene(scene.dir, scene.cameras, scene.points, out, small_options(),
+                        device="cpu")
+    return SimpleNamespace(out=out, summary=summary)
+
+
+def test_fit_outputs_loss_falls_and_quality(scene, fitted):
+    out, s = fitted.out, fitted.summary
+    for name in ("model.pt", "gaussians_t0.ply", "gaussians_t1.ply", "train_log.csv",
+                 "quality.csv"):
+        assert (out / name).is_file(), name
+    assert not (out / "ckpt" / "last.pt").exists()  # removed after a successful fit
+    assert s["iterations"] == 200 and s["resumed_from"] == 0
+    assert (s["width"], s["height"]) == (80, 60)
+    log = pd.read_csv(out / "train_log.csv")
+    assert {"iteration", "phase", "loss", "l1", "ssim", "psnr", "n_gaussians", "seconds",
+            "plane_tv", "time_l1"} <= set(log.columns)
+    assert log["iteration"].tolist() == list(range(5, 201, 5))
+    assert set(log["phase"]) == {"coarse", "fine"}
+    k = len(log) // 6
+    assert log["loss"].iloc[-k:].mean() < 0.7 * log["loss"].iloc[:k].mean()
+    q = pd.read_csv(out / "quality.csv")
+    assert len(q) == 16 and set(q["set"]) == {"before", "after"}
+    assert set(q["time"]) == {0.0, 1.0}
+    # floor for 200 iterations on a heavily textured 80x60 scene (a full run reaches far
+    # higher; the SfM initialisation renders at about 15-18 dB)
+    for t in (0, 1):
+        assert s[f"psnr_t{t}"] > 18.5, s
+    assert q["ssim"].min() > 0.5
+
+
+def test_densification_changes_the_count(scene, fitted):
+    log = pd.read_csv(fitted.out / "train_log.csv")
+    n0 = len(read_points_count(scene.points))
+    before = log[log["iteration"] < 60]["n_gaussians"]
+    assert (before == n0).all()  # nothing changes before the first refinement (iteration 60)
+    grown = log[(log["iteration"] >= 60) & (log["iteration"] <= 150)]["n_gaussians"]
+    assert grown.max() > n0  # early gradients are high: Gaussians are cloned / split
+    assert grown.max() <= 4000  # max_gaussians caps growth
+    after = log[log["iteration"] > 150]["n_gaussians"]
+    assert after.nunique() == 1  # no density control after densify_until
+    assert fitted.summary["n_gaussians"] == int(after.iloc[-1])
+
+
+def read_points_count(path):
+    from gdiff.splat.ply import read_points
+
+    return read_points(path)[0]
+
+
+def test_model_file_renders_training_views_and_depth(scene, fitted):
+    model = load_model(fitted.out / "model.pt", "cpu")
+    assert model.meta["camera"]["width"] == 80 and model.deforming
+    q = pd.read_csv(fitted.out / "quality.csv").set_index("image")
+    cams = [c for c in load_cameras(scene.cameras) if c.set == "after"][:3]
+    with torch.no_grad():
+        out = render(model, cams, 1.0)
+    assert out["rgb"].shape == (3, 60, 80, 3) and out["depth"].shape == (3, 60, 80, 1)
+    for i, cam in enumerate(cams):
+        gt = scene.synth.render(cam, "after", supersample=1)
+        img = torch.from_numpy(read_image(scene.dir / cam.image))
+        p = float(psnr(out["rgb"][i].clamp(0, 1), img))
+        assert abs(p - q.loc[cam.image, "psnr"]) < 1e-3
+        # rendered depth follows the true geometry where the model is opaque
+        d = out["depth"][i, ..., 0].numpy()
+        ok = out["alpha"][i, ..., 0].numpy() > 0.5
+        rel = np.abs(d[ok] - gt["depth"][ok]) / gt["depth"][ok]
+        assert ok.mean() > 0.6 and np.median(rel) < 0.05
+
+
+def test_ply_files_hold_the_deformed_gaussians(fitted):
+    model = load_model(fitted.out / "model.pt", "cpu")
+    for t in (0, 1):
+        g = read_gaussians(fitted.out / f"gaussians_t{t}.ply")
+        with torch.no_grad():
+            ref = model.at_time(float(t))
+        assert len(g) == len(ref) and g.sh.shape == ref.sh.shape
+        assert torch.allclose(g.means, ref.means, atol=1e-5)
+        assert torch.allclose(g.opacities, ref.opacities, atol=1e-4)
+        assert torch.allclose(g.scales, ref.scales, rtol=1e-4)
+
+
+def test_colour_deformation_absorbs_the_lighting_change(scene, fitted):
+    """At eval views (never trained on) the model renders each time with its own lighting:
+    t=1 is darker than t=0 by the factor applied to the after images, and matches the after
+    image far better than the t=0 render does."""
+    model = load_model(fitted.out / "model.pt", "cpu")
+    cams = [c for c in load_cameras(scene.cameras) if c.set == "eval_after"]
+    with torch.no_grad():
+        r0 = render(model, cams, 0.0, render_mode="RGB")["rgb"].clamp(0, 1)
+        r1 = render(model, cams, 1.0, render_mode="RGB")["rgb"].clamp(0, 1)
+    ratio = float(r1.mean() / r0.mean())
+    assert abs(ratio - DARKEN) < 0.08, ratio
+    for i, cam in enumerate(cams):
+        gt = torch.from_numpy(read_image(scene.dir / cam.image))
+        assert float(psnr(r1[i], gt)) > float(psnr(r0[i], gt)) + 2.0
+
+
+def test_resume_after_interruption_matches_uninterrupted(scene, tmp_path):
+    opts = small_options(coarse_iters=25, fine_iters=25, densify_from=10, densify_every=10,
+                         densify_until=45, checkpoint_every=15, log_every=5, max_gaussians=4000)
+    ref = fit_scene(scene.dir, scene.cameras, scene.points, tmp_path / "ref", opts, "cpu")
+
+    class Stop(Exception):
+        pass
+
+    def interrupt(trainer):
+        if trainer.iteration == 35:  # in the fine phase, after the checkpoint at 30
+            raise Stop
+
+    out = tmp_path / "run"
+    with pytest.raises(Stop):
+        fit_scene(scene.dir, scene.cameras, scene.points, out, opts, "cpu", callback=interrupt)
+    assert (out / "ckpt" / "last.pt").is_file() and not (out / "model.pt").exists()
+    shutil.copy(out / "ckpt" / "last.pt", tmp_path / "saved.pt")
+    res = fit_scene(scene.dir, scene.cameras, scene.points, out, opts, "cpu")
+    assert res["resumed_from"] == 30 and res["iterations"] == ref["iterations"] == 50
+    assert res["n_gaussians"] == ref["n_gaussians"]
+    for t in (0, 1):
+        assert abs(res[f"psnr_t{t}"] - ref[f"psnr_t{t}"]) < 0.3
+    a = pd.read_csv(out / "train_log.csv")
+    b = pd.read_csv(tmp_path / "ref" / "train_log.csv")
+    assert a["iteration"].tolist() == b["iteration"].tolist()
+    np.testing.assert_allclose(a["loss"], b["loss"], rtol=1e-3, atol=1e-4)
+    # a checkpoint made with other options is not resumed
+    shutil.copy(tmp_path / "saved.pt", out / "ckpt" / "last.pt")
+    started = []
+
+    def first(trainer):
+        started.append(trainer.iteration)
+        raise Stop
+
+    other = dataclasses.replace(opts, ssim_lambda=0.3)
+    with pytest.raises(Stop):
+        fit_scene(scene.dir, scene.cameras, scene.points, out, other, "cpu", callback=first)
+    assert started == [1]
+
+
+def test_divergence_raises_training_error_naming_iteration_and_checkpoint(scene, tmp_path):
+    opts = small_options(coarse_iters=30, fine_iters=0, checkpoint_every=10, densify_from=1000)
+
+    def poison(trainer):
+        if trainer.iteration == 25:
+            with torch.no_grad():
+                trainer.model.splats["sh0"].fill_(float("nan"))
+
+    with pytest.raises(TrainingError, match=r"iteration 26.*ckpt.*last\.pt.*iteration 20"):
+        fit_scene(scene.dir, scene.cameras, scene.points, tmp_path / "o", opts, "cpu",
+                  callback=poison)
+
+
+def test_inputs_without_after_images_are_rejected(scene, tmp_path):
+    cams = [c for c in load_cameras(scene.cameras) if c.set == "before"]
+    save_cameras(tmp_path / "c.json", cams)
+    with pytest.raises(SceneError, match="after"):
+        fit_scene(scene.dir, tmp_path / "c.json", scene.points, tmp_path / "o", small_options())
+
+
+def test_render_cli(scene, fitted, tmp_path):
+    model_path = fitted.out / "model.pt"
+    out = tmp_path / "r"
+    assert render_main(["--model", str(model_path), "--cameras", str(scene.cameras),
+                        "--set", "eval_after", "--t", "0", "--t", "1", "--out", str(out),
+                        "--depth"]) == 0
+    assert sorted(p.name for p in (out / "t1").iterdir()) == [
+        "00000.png", "00000_depth.npy", "00001.png", "00001_depth.npy"]
+    assert (out / "t0" / "00001.png").is_file() and (out / "index.json").is_file()
+    c2w = np.stack([c.c2w for c in load_cameras(scene.cameras)[:2]])
+    np.save(tmp_path / "poses.npy", c2w)
+    assert render_main(["--model", str(model_path), "--c2w", str(tmp_path / "poses.npy"),
+                        "--t", "0.5", "--out", str(tmp_path / "p")]) == 0
+    assert sorted(p.name for p in (tmp_path / "p" / "t0p5").iterdir()) == ["00000.png",
+                                                                          "00001.png"]

@@ -369,7 +369,7 @@ class Trainer:
                            + o.time_smooth_weight * terms["time_smooth"]
                            + o.time_l1_weight * terms["time_l1"])
         if not torch.isfinite(loss):
-            raise FloatingPointError(f"loss is {float(loss)}")
+            raise FloatingPointError(f"loss is {float(loss.detach())}")
         loss.backward()
         if densify_now and means2d.grad is not None:
             self.stats.update(means2d.grad, meta["radii"], w, h)

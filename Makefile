@@ -22,6 +22,7 @@ demo: install
 	$(BIN)/snakemake --cores 2
 
 test: install
+	$(BIN)/python -c "from gdiff.splat import csrc; csrc.load(required=True)"  # build the CPU kernel once
 	$(BIN)/python -m pytest -q -n 2 --durations=15
 
 clean-results:

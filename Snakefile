@@ -14,6 +14,9 @@ sys.path.insert(0, workflow.basedir)  # gdiff importable from a plain checkout, 
 configfile: "config/config.yaml"
 
 
+report: "workflow/report/workflow.rst"
+
+
 include: "workflow/rules/common.smk"
 include: "workflow/rules/synth.smk"
 include: "workflow/rules/poses.smk"

@@ -8,7 +8,28 @@ rule evaluate:
         cameras=res("{scene}", "poses", "cameras.json"),
         partition=res("{scene}", "partition", "model.pt"),
     output:
-        metrics=res("{scene}", "eval", "metrics.csv"),
+        metrics=report(
+            res("{scene}", "eval", "metrics.csv"),
+            caption="../report/metrics.rst",
+            category="{scene}",
+            subcategory="metrics",
+            labels={"table": "per view"},
+        ),
+        scene_summary=report(
+            res("{scene}", "eval", "scene_summary.csv"),
+            caption="../report/scene_summary.rst",
+            category="{scene}",
+            subcategory="metrics",
+            labels={"table": "per method"},
+        ),
+        overlays=report(
+            directory(res("{scene}", "eval", "overlays")),
+            patterns=["{view}.png"],
+            caption="../report/overlays.rst",
+            category="{scene}",
+            subcategory="eval views",
+            labels={"view": "{view}"},
+        ),
     params:
         options=options("evaluate"),
         segment=options("segment"),
@@ -28,8 +49,25 @@ rule summary:
     input:
         metrics=[res(s, "eval", "metrics.csv") for s in SCENES if SCENES[s].has_eval],
     output:
-        summary="results/summary.csv",
-        timings="results/timings.csv",
+        summary=report(
+            "results/summary.csv",
+            caption="../report/summary.rst",
+            category="summary",
+            labels={"table": "scene x method"},
+        ),
+        timings=report(
+            "results/timings.csv",
+            caption="../report/timings.rst",
+            category="summary",
+            labels={"table": "timings"},
+        ),
+        plots=report(
+            directory("results/plots"),
+            patterns=["{metric}.png"],
+            caption="../report/plots.rst",
+            category="summary",
+            labels={"plot": "{metric}"},
+        ),
     params:
         benchmarks={s: res(s, "benchmarks") for s in SCENES},
     conda:

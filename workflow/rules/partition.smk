@@ -11,6 +11,14 @@ rule partition:
         model=res("{scene}", "partition", "model.pt"),
         changed=res("{scene}", "partition", "changed.ply"),
         unchanged=res("{scene}", "partition", "unchanged.ply"),
+        maps=report(
+            directory(res("{scene}", "partition", "maps", "overlay")),
+            patterns=["{name}.png"],
+            caption="../report/change_maps.rst",
+            category="{scene}",
+            subcategory="change maps at the key poses",
+            labels={"view": "{name}"},
+        ),
     params:
         options=options("partition"),
         device=config["device"],

@@ -24,6 +24,17 @@ rule render:
         poses=res("{scene}", "sequence", "poses.json"),
     output:
         index=res("{scene}", "render", "frames.json"),
+        sheets=[
+            report(
+                res("{scene}", "render", path, f"{t}_sheet.png"),
+                caption="../report/sheets.rst",
+                category="{scene}",
+                subcategory="rendered sequences",
+                labels={"path": path, "time": t},
+            )
+            for path in ("p1", "p2")
+            for t in ("t0", "t1")
+        ],
     params:
         options=options("render"),
         device=config["device"],

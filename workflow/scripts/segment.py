@@ -1,5 +1,6 @@
 """Rule segment: instance segmentation of every rendered frame + tracking in one ID space."""
 import _bootstrap  # noqa: F401  (gdiff from this checkout)
+from dataclasses import replace
 from pathlib import Path
 
 from gdiff.options import from_config
@@ -8,8 +9,15 @@ from gdiff.segtrack import segment_and_track
 from gdiff.stage import run_stage
 from gdiff.track import TrackOptions
 
-run_stage(snakemake, lambda: segment_and_track(
-    Path(snakemake.input.index).parent, snakemake.input.poses,
-    Path(snakemake.output.index).parent,
-    from_config(SegmentOptions, snakemake.params.segment, "segment"),
-    from_config(TrackOptions, snakemake.params.track, "track")))
+
+def main():
+    seg = from_config(SegmentOptions, snakemake.params.segment, "segment")
+    if seg.threads == 0:  # SAM's onnxruntime: the rule's threads, not every core
+        seg = replace(seg, threads=snakemake.threads)
+    return segment_and_track(
+        Path(snakemake.input.index).parent, snakemake.input.poses,
+        Path(snakemake.output.index).parent, seg,
+        from_config(TrackOptions, snakemake.params.track, "track"))
+
+
+run_stage(snakemake, main)

@@ -77,7 +77,7 @@ class PosesOptions:
 
     source: str = "auto"
     matcher: str = "auto"
-    exhaustive_max_images: int = 200
+    exhaustive_max_images: int = 150
     sequential_overlap: int = 8
     sequential_links: int = 6
     camera_model: str = "PINHOLE"
@@ -632,12 +632,15 @@ def _run_colmap(root: Path, work: Path, images, sizes, opts: PosesOptions):
             "transforms.json in the scene folder, poses.source: known).")
     rec = models[0]
     if len(models) > 1:
+        in_largest = {rec.images[i].name for i in rec.reg_image_ids()}
         sizes_m = [m.num_reg_images() for m in models]
-        log.warning("COLMAP split the images into %d models of %s images; keeping the largest",
-                    len(models), sizes_m)
+        log.warning("COLMAP made %d models of %s images; keeping the largest", len(models),
+                    sizes_m)
         for k, m in enumerate(models[1:], 1):
-            log.warning("model %d holds: %s", k, ", ".join(sorted(
-                m.images[i].name for i in m.reg_image_ids())))
+            only = sorted({m.images[i].name for i in m.reg_image_ids()} - in_largest)
+            if only:
+                log.warning("model %d holds images missing from the largest: %s", k,
+                            ", ".join(only))
     by_name = {rec.images[i].name: rec.images[i] for i in rec.reg_image_ids()}
     dropped = _check_unregistered(images, set(by_name), opts.max_unregistered_fraction,
                                   f"COLMAP registration of {root}")

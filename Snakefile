@@ -2,6 +2,7 @@
 #   snakemake --cores 2                                  # the built-in demo scene
 #   snakemake --cores 2 --config scenes=/data/bench      # every scene folder in /data/bench
 # See README.md for inputs, configuration and outputs.
+import os
 import sys
 
 from snakemake.utils import min_version
@@ -11,7 +12,8 @@ min_version("9.0")
 sys.path.insert(0, workflow.basedir)  # gdiff importable from a plain checkout, too
 
 
-configfile: "config/config.yaml"
+# The defaults; --configfile FILE and --config KEY=VALUE override them.
+configfile: os.path.join(workflow.basedir, "config", "config.yaml")
 
 
 report: "workflow/report/workflow.rst"

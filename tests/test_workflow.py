@@ -63,3 +63,23 @@ def test_folder_of_scenes_and_sheet(tmp_path):
     r = smk("-n", "--config", f"scenes={sheet}")
     assert r.returncode == 0, r.stdout + r.stderr
     assert "results/first/fit/model.pt" in r.stdout
+
+
+def test_bad_input_fails_with_message_and_no_output(tmp_path):
+    """A corrupt photo stops the first rule with a message naming it; nothing half-written."""
+    from test_scene import make_scene
+
+    scene = make_scene(tmp_path / "data" / "broken")
+    (scene / "after" / "001.png").write_bytes(b"\x89PNG\r\n\x1a\nnot an image")
+    work = tmp_path / "work"
+    work.mkdir()
+    r = subprocess.run([SNAKEMAKE, "-s", str(ROOT / "Snakefile"), "-d", str(work), "--cores",
+                        "1", "--config", f"scenes={scene}", "--",
+                        "results/broken/input/manifest.json"],
+                       cwd=work, capture_output=True, text=True, timeout=300)
+    out = r.stdout + r.stderr
+    assert r.returncode != 0
+    assert "after/001.png: cannot be decoded as an image" in out
+    assert "Traceback" not in out
+    assert not (work / "results/broken/input/manifest.json").exists()
+    assert not list((work / "results").rglob("*.tmp*")) if (work / "results").exists() else True

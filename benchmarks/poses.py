@@ -3,6 +3,7 @@
 Usage::
 
     python benchmarks/poses.py SCENE_DIR [--matcher auto|exhaustive|sequential] [--out DIR]
+        [--camera-model PINHOLE|SIMPLE_PINHOLE] [--refine-principal-point] [--csv FILE]
 
 SCENE_DIR must hold ``gt_cameras.json`` (e.g. the shared test scenes). Runs the poses stage
 with COLMAP (ignoring any known poses), aligns the estimated camera centres to the ground truth
@@ -30,6 +31,8 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("scene")
     ap.add_argument("--matcher", default="auto", choices=["auto", "exhaustive", "sequential"])
+    ap.add_argument("--camera-model", default="PINHOLE", choices=["PINHOLE", "SIMPLE_PINHOLE"])
+    ap.add_argument("--refine-principal-point", action="store_true")
     ap.add_argument("--out", help="keep the poses outputs here (default: a temporary folder)")
     ap.add_argument("--csv", help="write the per-image errors to this CSV")
     args = ap.parse_args(argv)
@@ -43,7 +46,9 @@ def main(argv=None) -> int:
     with tempfile.TemporaryDirectory() as tmp:
         out = Path(args.out) if args.out else Path(tmp)
         t0 = time.time()
-        summary = run_poses(scene, out, PosesOptions(source="colmap", matcher=args.matcher))
+        summary = run_poses(scene, out, PosesOptions(
+            source="colmap", matcher=args.matcher, camera_model=args.camera_model,
+            refine_principal_point=args.refine_principal_point))
         seconds = time.time() - t0
         est = load_cameras(out / "cameras.json")
     df = pose_errors(est, gt)

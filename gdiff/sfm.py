@@ -67,6 +67,8 @@ class PosesOptions:
             downscaled for SIFT; poses and intrinsics stay in full-resolution pixels).
         max_num_features: SIFT features per image.
         min_num_matches: verified matches needed for an image pair to count in mapping.
+        refine_principal_point: let bundle adjustment move the principal point (off = keep it
+            at the image centre, COLMAP's default).
         max_unregistered_fraction: if a set (before, after, eval_before, eval_after) loses more
             than this fraction of its images, the stage fails listing them; otherwise they are
             dropped with a warning.
@@ -84,6 +86,7 @@ class PosesOptions:
     max_image_size: int = 1600
     max_num_features: int = 8192
     min_num_matches: int = 15
+    refine_principal_point: bool = False
     max_unregistered_fraction: float = 0.2
     num_threads: int = -1
     seed: int = 0
@@ -289,7 +292,7 @@ def _mapper_options(opts: PosesOptions, n_images: int):
     mp.min_model_size = max(2, min(10, n_images // 4))
     mp.multiple_models = True
     mp.extract_colors = True
-    mp.ba_refine_principal_point = False
+    mp.ba_refine_principal_point = bool(opts.refine_principal_point)
     return mp
 
 

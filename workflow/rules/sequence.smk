@@ -20,6 +20,7 @@ rule interpolate:
 
 rule render:
     input:
+        scene=scene_dir,
         model=res("{scene}", "fit", "model.pt"),
         poses=res("{scene}", "sequence", "poses.json"),
     output:

@@ -9,4 +9,4 @@ from gdiff.stage import run_stage
 run_stage(snakemake, lambda: render_sequences(
     snakemake.input.model, snakemake.input.poses, Path(snakemake.output.index).parent,
     from_config(RenderOptions, snakemake.params.options, "render"),
-    device=snakemake.params.device))
+    device=snakemake.params.device, scene_dir=snakemake.input.scene))

@@ -6,35 +6,68 @@ decision (does a candidate segment show different content at the other time?).
 Model: a pixel's linear colour is albedo x irradiance, per channel. A lighting change (light
 direction, colour, strength, exposure, a shadow's interior) multiplies the colour by a factor
 that varies slowly across a surface, i.e. it *adds* a slowly varying term to the log colour.
-Spatial gradients of the log colour are therefore kept by a lighting change (up to the gradient
-of the shading, small against texture edges, and the edges of moving cast shadows, which are
-few pixels), while a different object or surface has unrelated gradients. The similarity of two
-views of a region is the normalised correlation of their log-colour gradient fields (all three
-channels, both image axes) over the region: 1 for the same texture under any lighting, ~0 for
-unrelated textures, and undefined (NaN) when the region has too little texture at either time.
+Spatial gradients of the log colour are therefore kept by a lighting change, while a different
+object or surface has unrelated gradients. Three steps make this hold on real renders:
+
+* the log has a floor proportional to the image's median intensity (dark pixels' noise is not
+  texture, and a global exposure change scales the floor with the image, so it stays exact);
+* the log colour blurred at ``SHADING_SIGMA`` is subtracted (the shading of curved surfaces,
+  which a moved light changes, varies slowly; texture and edges do not);
+* the gradients are divided by their local RMS (``CONTRAST_SIGMA``, with a floor): a camera's
+  tone curve compresses contrast in bright areas, which changes edge strengths but not where
+  the edges are.
+
+The similarity of two views of a region is the normalised correlation of these gradient fields
+(all three channels, both image axes) over the region: ~1 for the same texture under any
+lighting, ~0 for unrelated textures, and undefined (NaN) when the region has too little texture
+at either time.
 """
 
 from __future__ import annotations
+
+from dataclasses import dataclass
 
 import cv2
 import numpy as np
 
 from .io import srgb_to_linear
 
-#: floor added to linear values before the log (sensor-level noise in dark pixels is not texture)
-LOG_FLOOR = 0.02
+#: log floor as a fraction of the image's median linear intensity
+LOG_FLOOR_REL = 0.1
+#: Gaussian sigma (pixels) of the shading removed before comparing texture
+SHADING_SIGMA = 3.0
+#: Gaussian sigma (pixels) of the pre-blur (noise) before differentiation
+GRAD_SIGMA = 1.0
+#: Gaussian sigma (pixels) of the window for local contrast normalisation
+CONTRAST_SIGMA = 4.0
+#: pixels along a region's boundary left out of the comparison (the background there differs)
+BORDER = 2
 
 
-def log_gradients(rgb: np.ndarray, sigma: float = 1.0, highpass: float = 0.0) -> np.ndarray:
+@dataclass
+class Texture:
+    """Texture of an image for :func:`region_similarity`.
+
+    ``grad``: contrast-normalised log-colour gradients, float32 [H, W, 3, 2];
+    ``energy``: squared raw log-colour gradient magnitude per pixel (log units^2), [H, W].
+    """
+
+    grad: np.ndarray
+    energy: np.ndarray
+
+
+def log_gradients(rgb: np.ndarray, sigma: float = GRAD_SIGMA,
+                  highpass: float = SHADING_SIGMA) -> np.ndarray:
     """Gradients of the log linear colour, float32 [H, W, 3, 2] (d/dx, d/dy per channel).
 
-    ``rgb``: sRGB-encoded float [H, W, 3] in [0, 1]. Central differences (Sobel / 8) after a
-    Gaussian blur of ``sigma`` pixels; units: log-colour change per pixel. With ``highpass``
-    > 0 the log colour blurred by that sigma (pixels) is subtracted first, which removes the
-    slowly varying shading of curved surfaces and keeps the texture.
+    ``rgb``: sRGB-encoded float [H, W, 3] in [0, 1]. The log has a floor of ``LOG_FLOOR_REL``
+    x the median linear intensity. With ``highpass`` > 0 the log colour blurred by that sigma
+    (pixels) is subtracted (shading removed). Central differences (Sobel / 8) after a Gaussian
+    blur of ``sigma`` pixels; units: log-colour change per pixel.
     """
     lin = srgb_to_linear(np.asarray(rgb, np.float32))
-    lg = np.log(lin + LOG_FLOOR).astype(np.float32)
+    floor = max(LOG_FLOOR_REL * float(np.median(lin.mean(-1))), 1e-3)
+    lg = np.log(lin + floor).astype(np.float32)
     if highpass > 0:
         lg = lg - cv2.GaussianBlur(lg, (0, 0), highpass)
     if sigma > 0:
@@ -42,6 +75,15 @@ def log_gradients(rgb: np.ndarray, sigma: float = 1.0, highpass: float = 0.0) ->
     gx = cv2.Sobel(lg, cv2.CV_32F, 1, 0, ksize=3) / 8.0
     gy = cv2.Sobel(lg, cv2.CV_32F, 0, 1, ksize=3) / 8.0
     return np.stack([gx, gy], axis=-1)
+
+
+def texture(rgb: np.ndarray, min_texture: float = 0.03) -> Texture:
+    """:class:`Texture` of ``rgb`` (sRGB float [H, W, 3]); gradients are divided by their local
+    RMS (window ``CONTRAST_SIGMA``) floored at ``min_texture`` so flat areas stay ~0."""
+    g = log_gradients(rgb)
+    e = (g * g).sum((-1, -2))
+    local = cv2.GaussianBlur(e, (0, 0), CONTRAST_SIGMA)
+    return Texture(g / np.sqrt(local + min_texture ** 2)[..., None, None], e)
 
 
 def interior(mask: np.ndarray, width: int) -> np.ndarray:
@@ -52,40 +94,23 @@ def interior(mask: np.ndarray, width: int) -> np.ndarray:
     return er if er.sum() >= 8 else mask
 
 
-def gradient_similarity(g0: np.ndarray, g1: np.ndarray, region: np.ndarray,
-                        min_texture: float) -> tuple[float, float]:
-    """Normalised correlation of two gradient fields [H, W, 3, 2] over ``region`` bool [H, W].
+def region_similarity(t0: Texture, t1: Texture, mask: np.ndarray, min_texture: float) -> float:
+    """Texture similarity in [-1, 1] of a region (bool [H, W]) between two pixel-aligned views.
 
-    Returns ``(similarity, texture)``: similarity in [-1, 1] (NaN when the RMS gradient of the
-    weaker of the two views is below ``min_texture`` log units per pixel, or the region is
-    empty) and that RMS gradient.
+    The region's border (``BORDER`` pixels) is left out. NaN when the region is empty or the
+    RMS raw gradient of the weaker view is below ``min_texture`` log units per pixel
+    (untextured: nothing to compare).
     """
-    a = g0[region].reshape(-1)
-    b = g1[region].reshape(-1)
-    if a.size == 0:
-        return float("nan"), 0.0
-    n = region.sum()
+    region = interior(mask, BORDER)
+    n = int(region.sum())
+    if n == 0:
+        return float("nan")
+    if np.sqrt(min(t0.energy[region].mean(), t1.energy[region].mean())) < min_texture:
+        return float("nan")
+    a = t0.grad[region].reshape(-1)
+    b = t1.grad[region].reshape(-1)
     ea, eb = float(a @ a), float(b @ b)
-    texture = float(np.sqrt(min(ea, eb) / n))
-    if texture < min_texture:
-        return float("nan"), texture
-    return float(a @ b) / np.sqrt(ea * eb), texture
+    if ea <= 0 or eb <= 0:
+        return float("nan")
+    return float(a @ b) / np.sqrt(ea * eb)
 
-
-#: Gaussian sigma (pixels) of the shading removed before comparing texture
-SHADING_SIGMA = 3.0
-#: pixels along a region's boundary left out of the comparison (the background there differs)
-BORDER = 2
-
-
-def texture_gradients(rgb: np.ndarray) -> np.ndarray:
-    """Log-colour gradients of the texture of ``rgb`` (shading removed), [H, W, 3, 2]."""
-    return log_gradients(rgb, sigma=1.0, highpass=SHADING_SIGMA)
-
-
-def region_similarity(g0: np.ndarray, g1: np.ndarray, mask: np.ndarray,
-                      min_texture: float) -> float:
-    """Texture similarity of a region (bool [H, W]) between two pixel-aligned views, from their
-    :func:`texture_gradients`; NaN when the region is untextured or empty (see
-    :func:`gradient_similarity`). The region's border (``BORDER`` pixels) is left out."""
-    return gradient_similarity(g0, g1, interior(mask, BORDER), min_texture)[0]

@@ -33,7 +33,7 @@ import numpy as np
 import pandas as pd
 from scipy.optimize import linear_sum_assignment
 
-from .appearance import region_similarity, texture_gradients
+from .appearance import region_similarity, texture as image_texture
 from .errors import ConfigError
 from .io import srgb_to_linear
 
@@ -51,7 +51,8 @@ class CompareOptions:
     min_area: instance masks smaller than this (pixels) are ignored at that pose.
     depth_change_rel: a pixel's depth changed when |z0 - z1| / min(z0, z1) exceeds this.
     same_similarity: a candidate is confirmed when the texture of its changed region correlates
-        less than this between the two times (:mod:`gdiff.appearance`; lighting-invariant).
+        less than this between the two times (:func:`gdiff.appearance.region_similarity`;
+        lighting-invariant).
     min_texture: RMS log-colour gradient below which a region is untextured (no texture test).
     chroma_tol: a pixel's chromaticity (grey-world normalised, L1) changed above this (fallback
         for untextured regions without depth).
@@ -73,7 +74,7 @@ class CompareOptions:
     min_evidence: float = 0.3
     vote_frac: float = 0.5
     moved_similarity: float = 0.85
-    same_similarity: float = 0.4
+    same_similarity: float = 0.35
     min_texture: float = 0.03
 
     def __post_init__(self):
@@ -200,7 +201,8 @@ def pose_stats(ids0: np.ndarray, ids1: np.ndarray, o: CompareOptions,
 
     def grads():
         if "g0" not in cache:
-            cache["g0"], cache["g1"] = texture_gradients(rgb0), texture_gradients(rgb1)
+            cache["g0"] = image_texture(rgb0, o.min_texture)
+            cache["g1"] = image_texture(rgb1, o.min_texture)
         return cache["g0"], cache["g1"]
 
     def ev_chroma():

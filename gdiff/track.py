@@ -47,7 +47,7 @@ import numpy as np
 import pandas as pd
 from scipy.optimize import linear_sum_assignment
 
-from .appearance import region_similarity, texture_gradients
+from .appearance import Texture, region_similarity, texture as image_texture
 from .cameras import Camera
 from .errors import ConfigError
 from .log import progress
@@ -88,7 +88,7 @@ class TrackOptions:
     link_same_pose: bool = True
     vote_window: int = 5
     flow_fb_tol: float = 1.5
-    link_min_similarity: float = 0.4
+    link_min_similarity: float = 0.35
     min_texture: float = 0.03
     merge_3d: bool = True
     merge_dist_frac: float = 0.5
@@ -293,12 +293,12 @@ def track_sequence(frames: list[TrackFrame], options: TrackOptions | None = None
     seen_at: dict[int, list[int]] = {}  # track id -> chain indices where observed
     areas: dict[int, int] = {}
     done_by_pose: dict[Hashable, int] = {}
-    grads: dict[int, np.ndarray] = {}
+    grads: dict[int, Texture] = {}
     n_broken = 0
 
-    def texture(k: int) -> np.ndarray:
+    def texture(k: int) -> Texture:
         if k not in grads:
-            grads[k] = texture_gradients(frames[k].rgb)
+            grads[k] = image_texture(frames[k].rgb, o.min_texture)
         return grads[k]
 
     for k, fr in enumerate(progress(frames, desc="track", total=len(frames))):

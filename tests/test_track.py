@@ -10,7 +10,8 @@ from gdiff import synth
 from gdiff.cameras import Camera
 from gdiff.segment import SegmentOptions, make_segmenter
 from gdiff.segtrack import track_paths
-from gdiff.track import (TrackFrame, TrackOptions, chain_order, reproject_ids, track_sequence)
+from gdiff.track import (TrackFrame, TrackOptions, chain_order, merge_by_position, reproject_ids,
+                         track_sequence)
 
 N = 6
 
@@ -126,3 +127,62 @@ def test_flow_tracking_new_ids_and_dropped_tracks():
     assert c not in (a[0], b)  # new object, new ID; IDs never reused
     assert all(b not in np.unique(m) for m in res.ids[3:])
     assert set(res.tracks["id"]) == {a[0], b, c}
+
+
+def _textured(rng, shape, sigma=1.2):
+    x = cv2.GaussianBlur(rng.normal(size=shape + (3,)).astype(np.float32), (0, 0), sigma)
+    return (0.2 + 0.6 * (x - x.min()) / (x.max() - x.min())).astype(np.float32)
+
+
+def test_same_pose_link_needs_matching_texture():
+    # one pose, two times, identical segment masks: the object keeps its ID under a lighting
+    # change (gain, colour cast), but a different object at the same spot gets a new ID
+    rng = np.random.default_rng(0)
+    shape = (60, 80)
+    lab = np.zeros(shape, np.int32)
+    lab[15:45, 20:60] = 1
+    rgb0 = _textured(rng, shape)
+    relit = np.clip(rgb0 * np.array([0.6, 0.7, 0.9], np.float32), 0, 1)
+    other = rgb0.copy()
+    other[lab > 0] = _textured(rng, shape)[lab > 0]
+    for rgb1, keeps in ((relit, True), (other, False)):
+        frames = [TrackFrame(labels=lab, rgb=rgb0, pose_key=0, time=0),
+                  TrackFrame(labels=lab, rgb=rgb1, pose_key=0, time=1)]
+        res = track_sequence(frames, TrackOptions(vote_window=0))
+        a, b = res.ids[0][30, 40], res.ids[1][30, 40]
+        assert a > 0 and b > 0 and (a == b) == keeps
+    # with the test disabled the link is kept whatever the texture
+    res = track_sequence(frames, TrackOptions(vote_window=0, link_min_similarity=-1))
+    assert res.ids[0][30, 40] == res.ids[1][30, 40]
+
+
+def test_tracks_merge_by_3d_position():
+    # a flat floor 4 m ahead with a box (3.5 m); the box is seen on two separate stretches
+    # (its track broken between them) from cameras moved sideways, at t0 only
+    cam = Camera(80, 60, 60.0, 60.0, 40.0, 30.0)
+
+    def frame(dx, with_box, time, box_at=0.0):
+        c2w = np.eye(4)
+        c2w[0, 3] = dx
+        c = cam.with_pose(c2w)
+        z = np.full((60, 80), 4.0, np.float32)
+        u0 = int(round(40 + 60 * (box_at - 0.25 - dx) / 3.5))
+        u1 = int(round(40 + 60 * (box_at + 0.25 - dx) / 3.5))
+        if with_box:
+            z[20:40, max(u0, 0):max(u1, 0)] = 3.5
+        return TrackFrame(labels=np.zeros((60, 80), np.int32), depth=z, camera=c, time=time), \
+            (z < 3.9).astype(np.int32)
+
+    seq = [frame(0.0, True, 0), frame(0.05, True, 0), frame(0.1, False, 0),
+           frame(0.15, True, 0), frame(0.2, True, 0), frame(0.0, False, 1),
+           frame(0.1, True, 1, box_at=0.6)]
+    frames = [f for f, _ in seq]
+    ids = [m * tid for (_, m), tid in zip(seq, [5, 5, 0, 9, 9, 0, 12])]
+    out = merge_by_position(ids, frames, 0.5)
+    assert out == {9: 5}  # same place, same time: one object; 12 is elsewhere, at t1
+    # the same box seen only at t1 on the second stretch is not merged with the t0 track
+    ids2 = [m * tid for (_, m), tid in zip(seq, [5, 5, 0, 0, 0, 0, 0])]
+    f2 = frames[:5] + [frame(0.15, True, 1)[0], frame(0.2, True, 1)[0]]
+    ids2[5] = seq[3][1] * 9
+    ids2[6] = seq[4][1] * 9
+    assert merge_by_position(ids2, f2, 0.5) == {}

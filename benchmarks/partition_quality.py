@@ -15,7 +15,7 @@ in neither training set) against ``eval/masks``:
      - the compare stage without the interpolated sequences;
 4. partition: ``gdiff.partition.train_partition``;
 5. scoring: ``render_change_map(pm, eval camera, t=None)`` (union of t=0 and t=1) vs the GT
-   mask: pooled and per-view mean P/R/F1/IoU (``gdiff.metrics``), plus AP-free threshold
+   mask: pooled and per-view mean P/R/F1/IoU (``gdiff.metrics``), plus a threshold
    sweep of the probability map (the 0.5 default vs the best threshold, to check the claim
    that no per-scene threshold is needed).
 

@@ -73,7 +73,7 @@ class TrackOptions:
     flow_fb_tol: optical-flow forward-backward consistency tolerance, pixels.
     link_min_similarity: a link between the two times at one pose needs at least this
         correlation of the log-colour texture of the two masks (see :mod:`gdiff.appearance`);
-        masks with too little texture (``min_texture``) keep the link. 0 disables the test.
+        masks with too little texture (``min_texture``) keep the link. -1 disables the test.
     min_texture: RMS log-colour gradient (per pixel, after removing shading) below which a
         region counts as untextured and its appearance is not compared.
     merge_3d: merge tracks of one object by 3D position (needs depth, cameras, times).

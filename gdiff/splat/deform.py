@@ -169,7 +169,7 @@ class Deformation(nn.Module):
                                     for k, d in outs.items() if d})
 
     def forward(self, means: torch.Tensor, t) -> dict[str, torch.Tensor]:
-        h = self.trunk(self.field(means, t))
+        h = self.trunk(self.field(means.detach(), t))
         out = {}
         for name, head in self.heads.items():
             d = head(h)

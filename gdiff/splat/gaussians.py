@@ -11,7 +11,9 @@ name                  shape              meaning
 ``means``             [N, 3]             centre, world units (metres in the scenes)
 ``scales``            [N, 3]             log of the standard deviations along the axes
 ``quats``             [N, 4]             rotation quaternion, wxyz, not normalised
-``opacities``         [N]                logit of opacity
+``opacities``         [N]                logit of opacity (at t = 0.5)
+``dopacity``          [N]                change of that logit over time: at time t the logit
+                                         is ``opacities + (2t - 1) dopacity`` (4D models)
 ``sh0``               [N, 1, 3]          degree-0 SH coefficient per colour channel
 ``shN``               [N, K-1, 3]        higher-order SH coefficients, K = (degree+1)^2
 ====================  =================  =========================================
@@ -37,7 +39,7 @@ from torch import nn
 
 SH_C0 = 0.28209479177387814  # Y_0^0 = 1 / (2 sqrt(pi))
 
-PARAM_NAMES = ("means", "scales", "quats", "opacities", "sh0", "shN")
+PARAM_NAMES = ("means", "scales", "quats", "opacities", "dopacity", "sh0", "shN")
 
 
 def rgb_to_sh0(rgb: torch.Tensor) -> torch.Tensor:
@@ -129,6 +131,7 @@ def init_params(xyz: np.ndarray, rgb: np.ndarray, sh_degree: int = 3,
         "scales": t(np.log(s))[:, None].repeat(1, 3),
         "quats": t(quats),
         "opacities": torch.full((n,), math.log(init_opacity / (1 - init_opacity))),
+        "dopacity": torch.zeros(n),
         "sh0": rgb_to_sh0(t(rgb))[:, None, :],
         "shN": torch.zeros(n, k - 1, 3),
     }
@@ -239,10 +242,18 @@ def split(params: nn.ParameterDict, optimizer: torch.optim.Optimizer | None, mas
 
 def reset_opacity(params: nn.ParameterDict, optimizer: torch.optim.Optimizer | None,
                   value: float = 0.01) -> None:
-    """Clamp every opacity to at most ``value`` and zero the opacity's optimiser moments."""
+    """Clamp every opacity to at most ``value`` and zero the opacity's optimiser moments.
+
+    With a ``dopacity`` entry the cap holds at every time t in [0, 1]: the logit at the time
+    where it is largest (``opacities + |dopacity|``) is brought down to the cap.
+    """
     cap = math.log(value / (1 - value))
     old = params["opacities"]
-    new = nn.Parameter(old.detach().clamp_max(cap), requires_grad=old.requires_grad)
+    raw = old.detach()
+    if "dopacity" in params:
+        top = raw + params["dopacity"].detach().abs()
+        raw = raw - (top - cap).clamp_min(0.0)
+    new = nn.Parameter(raw.clamp_max(cap), requires_grad=old.requires_grad)
     group = _group_of(optimizer, "opacities") if optimizer is not None else None
     if group is not None:
         state = optimizer.state.pop(old, None)
@@ -277,9 +288,14 @@ class DensifyStats:
 
     @torch.no_grad()
     def update(self, means2d_grad: torch.Tensor, radii: torch.Tensor, width: int,
-               height: int) -> None:
+               height: int, present: torch.Tensor | None = None) -> None:
         """Accumulate one rasterised batch: means2d_grad [C, N, 2] (pixels), radii [C, N] or
-        [C, N, 2] (pixels; 0 = not visible)."""
+        [C, N, 2] (pixels; 0 = not visible).
+
+        ``present`` [C, N] or [N] (bool) marks the Gaussians that exist in this view (e.g.
+        opacity at the view's time above the prune level); the others are not counted, so a
+        Gaussian of an object seen at one time only is judged on the views of that time.
+        """
         if radii.dim() == 3:
             radii = radii.max(dim=-1).values
         c = means2d_grad.shape[0]
@@ -287,6 +303,8 @@ class DensifyStats:
         g[..., 0] *= width / 2.0 * c
         g[..., 1] *= height / 2.0 * c
         vis = radii > 0
+        if present is not None:
+            vis = vis & present.to(vis.device).expand_as(vis)
         norm = g.norm(dim=-1) * vis
         self.grad2d += norm.sum(0)
         self.count += vis.sum(0).to(self.count.dtype)

@@ -8,7 +8,10 @@ API used by later stages::
                              # opacities [N], sh [N,K,3], sh_degree  (differentiable)
 
 ``model.splats`` is an ``nn.ParameterDict`` of raw per-Gaussian parameters (names and shapes in
-:mod:`gdiff.splat.gaussians`); a later stage may add its own per-Gaussian entries (first
+:mod:`gdiff.splat.gaussians`); among them ``dopacity`` [N], the per-Gaussian change of the
+opacity logit over time: ``logit(t) = opacities + (2t - 1) dopacity (+ the field's delta)``, so
+a Gaussian can exist at one time only (an added or removed object) from the first iteration
+on, without waiting for the deformation field. A later stage may add its own per-Gaussian entries (first
 dimension N), which densification carries along and :func:`save_model`/:func:`load_model`
 preserve. ``model.deformation`` is a :class:`~gdiff.splat.deform.Deformation` (or None for a
 static model); its deltas are applied only once ``model.deform_on`` is set (the fine phase).
@@ -57,6 +60,7 @@ class GaussianModel4D(nn.Module):
             "scales": nn.Parameter(torch.full((n, 3), -4.0)),
             "quats": nn.Parameter(quats),
             "opacities": nn.Parameter(torch.zeros(n)),
+            "dopacity": nn.Parameter(torch.zeros(n)),
             "sh0": nn.Parameter(torch.zeros(n, 1, 3)),
             "shN": nn.Parameter(torch.zeros(n, k - 1, 3)),
         })
@@ -93,6 +97,10 @@ class GaussianModel4D(nn.Module):
         """Rebuild from :meth:`config` and a state dict (any N, extra ``splats.*`` entries)."""
         n = int(state_dict["splats.means"].shape[0])
         model = cls(n, config["sh_degree"], config.get("deform"))
+        state_dict = dict(state_dict)
+        ref = state_dict["splats.means"]
+        # models from before the time-opacity term: no change of opacity over time
+        state_dict.setdefault("splats.dopacity", ref.new_zeros(n))
         for key, v in state_dict.items():
             if key.startswith("splats."):
                 name = key.split(".", 1)[1]
@@ -116,8 +124,11 @@ class GaussianModel4D(nn.Module):
         """Raw (unactivated) parameters at time t (float or 0-d tensor in [0, 1]):
         means, scales (log), quats (unnormalised), opacities (logit), sh [N, K, 3]."""
         s = self.splats
+        opacities = s["opacities"]
+        if "dopacity" in s:
+            opacities = opacities + (2.0 * t - 1.0) * s["dopacity"]
         out = {"means": s["means"], "scales": s["scales"], "quats": s["quats"],
-               "opacities": s["opacities"], "sh": torch.cat([s["sh0"], s["shN"]], dim=1)}
+               "opacities": opacities, "sh": torch.cat([s["sh0"], s["shN"]], dim=1)}
         if self.deforming and len(self):
             for name, d in self.deformation(s["means"], t).items():
                 if name == "sh" and d.shape[1] < out["sh"].shape[1]:

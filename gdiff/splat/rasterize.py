@@ -408,15 +408,16 @@ def rasterize(means: torch.Tensor, quats: torch.Tensor, scales: torch.Tensor,
         feats = torch.cat([feats, depth_feat], dim=-1)
     feats = feats.contiguous()
     opac = opacities[None, :].expand(C, N)
+    extents, drawn = opacity_footprint(proj["extents"], proj["visible"], opacities)
 
     if used == "cpp":
         from . import csrc
         render, alpha = csrc.rasterize_cpp(proj["means2d"], proj["conics"], feats, opac,
-                                           proj["extents"], proj["visible"], proj["depths"],
+                                           extents, drawn, proj["depths"],
                                            width, height, absgrad=absgrad)
     else:
         render, alpha = rasterize_torch(proj["means2d"], proj["conics"], feats, opac,
-                                        proj["extents"], proj["visible"], proj["depths"],
+                                        extents, drawn, proj["depths"],
                                         width, height, absgrad=absgrad)
     if backgrounds is not None and render_mode not in ("D", "ED"):
         if backgrounds.shape != (C, D):
@@ -431,6 +432,26 @@ def rasterize(means: torch.Tensor, quats: torch.Tensor, scales: torch.Tensor,
                 conics=proj["conics"], opacities=opac, visible=proj["visible"], width=width,
                 height=height, n_cameras=C, tile_size=tile_size, backend=used)
     return render, alpha, meta
+
+
+@torch.no_grad()
+def opacity_footprint(extents: torch.Tensor, visible: torch.Tensor, opacities: torch.Tensor
+                      ) -> tuple[torch.Tensor, torch.Tensor]:
+    """Shrink each Gaussian's pixel box to where it can reach ``alpha >= 1/255``.
+
+    A pixel gets ``alpha = min(0.99, o exp(-sigma))``, skipped below 1/255, so a Gaussian of
+    opacity ``o`` only touches pixels with ``sigma <= ln(255 o)``; when that is below the
+    3-sigma limit (4.5) the box scales by ``sqrt(ln(255 o) / 4.5)``. The image is unchanged
+    (the same pixels pass both tests); only fewer pixels are visited.
+
+    Args: extents [C,N,2] px half-sizes of the 3-sigma boxes, visible [C,N] bool,
+        opacities [N] in [0, 1].
+    Returns: (extents [C,N,2], visible [C,N]) with Gaussians below 1/255 opacity dropped.
+    """
+    # 1e-3 of slack keeps every pixel the kernel's own float test accepts
+    reach = torch.log(opacities.clamp_min(1e-12) * (1.0 / ALPHA_MIN)) + 1e-3
+    scale = torch.sqrt((reach / SIGMA_MAX).clamp(0.0, 1.0))
+    return extents * scale[None, :, None], visible & (reach > 0)[None, :]
 
 
 def _features(colors, sh_degree, means, viewmats, C, N) -> torch.Tensor:

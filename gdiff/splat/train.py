@@ -88,6 +88,7 @@ class FitOptions:
     lr_scales: float = 5e-3
     lr_quats: float = 1e-3
     lr_opacities: float = 5e-2
+    lr_dopacity: float = 5e-2  # per-Gaussian opacity change over time (logit units)
     lr_sh0: float = 2.5e-3
     lr_shN: float = 1.25e-4
     lr_grid: float = 1e-2  # HexPlane planes (normalised coordinates), decays over fine phase
@@ -260,7 +261,7 @@ class Trainer:
         self.optimizer = self._make_optimizer()
         self.stats = DensifyStats(len(model), self.device)
         self.gen = torch.Generator().manual_seed(opts.seed)
-        self.order = torch.randperm(len(views), generator=self.gen)
+        self.order = self._epoch_order()
         self.cursor = 0
         self.rows: list[dict] = []
         self.elapsed = 0.0
@@ -270,7 +271,8 @@ class Trainer:
     def _make_optimizer(self) -> torch.optim.Optimizer:
         o, m = self.opts, self.model
         lrs = {"means": o.lr_means * self.extent, "scales": o.lr_scales, "quats": o.lr_quats,
-               "opacities": o.lr_opacities, "sh0": o.lr_sh0, "shN": o.lr_shN}
+               "opacities": o.lr_opacities, "dopacity": o.lr_dopacity, "sh0": o.lr_sh0,
+               "shN": o.lr_shN}
         groups = [{"params": [p], "lr": lrs.get(name, o.lr_sh0), "name": name}
                   for name, p in m.splats.items()]
         if m.deformation is not None:
@@ -312,9 +314,23 @@ class Trainer:
         m.deform_on.fill_(True)
         log.info("fine phase: deformation on, box %s .. %s", lo.tolist(), hi.tolist())
 
+    def _epoch_order(self) -> torch.Tensor:
+        """Every view once, times alternating (t0, t1, t0, ...; random order within a time)
+        so both states get the same share of every stretch of iterations; the views of the
+        larger set that are left over come last."""
+        by_time: dict[float, list[int]] = {}
+        for i, v in enumerate(self.views):
+            by_time.setdefault(v.time, []).append(i)
+        queues = [torch.tensor(ix)[torch.randperm(len(ix), generator=self.gen)].tolist()
+                  for _, ix in sorted(by_time.items())]
+        order = []
+        for k in range(max(len(q) for q in queues)):
+            order += [q[k] for q in queues if k < len(q)]
+        return torch.tensor(order, dtype=torch.long)
+
     def _next_view(self) -> TrainView:
         if self.cursor >= len(self.order):
-            self.order = torch.randperm(len(self.views), generator=self.gen)
+            self.order = self._epoch_order()
             self.cursor = 0
         v = self.views[int(self.order[self.cursor])]
         self.cursor += 1
@@ -372,7 +388,9 @@ class Trainer:
             raise FloatingPointError(f"loss is {float(loss.detach())}")
         loss.backward()
         if densify_now and means2d.grad is not None:
-            self.stats.update(means2d.grad, meta["radii"], w, h)
+            # a Gaussian absent at this time (opacity ~0) is not judged on this view
+            present = g.opacities.detach() > o.prune_opacity
+            self.stats.update(means2d.grad, meta["radii"], w, h, present)
         self.optimizer.step()
         self.optimizer.zero_grad(set_to_none=True)
         self.iteration = it + 1

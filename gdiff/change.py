@@ -205,6 +205,17 @@ def pose_stats(ids0: np.ndarray, ids1: np.ndarray, o: CompareOptions,
             cache["g1"] = image_texture(rgb1, o.min_texture)
         return cache["g0"], cache["g1"]
 
+    def points(time: int):
+        """World points [H, W, 3] of the depth at ``time``, or None."""
+        z = depth0 if time == 0 else depth1
+        if z is None or camera is None:
+            return None
+        if f"P{time}" not in cache:
+            from .track import world_points
+
+            cache[f"P{time}"] = world_points(z, camera)
+        return cache[f"P{time}"]
+
     def ev_chroma():
         if "chroma" not in cache:
             cache["chroma"] = appearance_change(rgb0, rgb1, o.chroma_tol, o.ncc_min)
@@ -254,18 +265,17 @@ def pose_stats(ids0: np.ndarray, ids1: np.ndarray, o: CompareOptions,
         if z is not None and focal:
             size = size * float(np.median(z[m])) / focal
         rec["size"] = float(size)
-        rec["pos"] = _position(m, z, camera)
+        rec["pos"] = _position(m, points(0 if a0 else 1))
         rec["pos_size"] = rec["size"] if len(rec["pos"]) == 3 else float(np.sqrt(m.sum()))
         out[int(t)] = rec
     return out
 
 
-def _position(mask: np.ndarray, depth: np.ndarray | None, camera) -> np.ndarray:
-    """Median world point [3] of a mask (depth and camera known), else its pixel centroid [2]."""
-    if depth is not None and camera is not None:
-        from .track import world_points
-
-        pts = world_points(depth, camera)[mask]
+def _position(mask: np.ndarray, points: np.ndarray | None) -> np.ndarray:
+    """Median world point [3] of a mask (``points``: world points [H, W, 3] of its image, or
+    None), else its pixel centroid [2]."""
+    if points is not None:
+        pts = points[mask]
         pts = pts[np.isfinite(pts).all(1)]
         if len(pts):
             return np.median(pts, 0)

@@ -6,6 +6,8 @@ poses stage (``gdiff.sfm.run_poses``, source known), the 4D model is fitted with
 ``FitOptions`` (defaults, or ``--set key=value`` overrides), then
 
 * training views: PSNR / SSIM from ``fit/quality.csv`` (each image at its own time);
+* wall and CPU time of the fit and the machine's load average at its start and end (on a
+  shared machine the CPU time is the steadier measure of cost);
 * eval views (novel, never trained on): render t=0 and t=1 at full size and compare with
   ``eval/before`` and ``eval/after``; also PSNR outside the ground-truth change mask (the
   unchanged background must look like the real image of that time, lighting included) and
@@ -24,6 +26,8 @@ from __future__ import annotations
 import argparse
 import json
 import logging
+import os
+import resource
 import shutil
 import sys
 import time
@@ -119,13 +123,17 @@ def main(argv=None) -> int:
         name, work = prepare(spec, out)
         sdir = out / name
         pdir = poses(work, sdir)
-        t0 = time.time()
+        t0, c0, load0 = time.time(), resource.getrusage(resource.RUSAGE_SELF), os.getloadavg()[0]
         s = fit_scene(work, pdir / "cameras.json", pdir / "points.ply", sdir / "fit", opts, "cpu")
         wall = time.time() - t0
+        c1 = resource.getrusage(resource.RUSAGE_SELF)
+        cpu = (c1.ru_utime + c1.ru_stime) - (c0.ru_utime + c0.ru_stime)
         model = load_model(sdir / "fit" / "model.pt", "cpu")
         ev = eval_views(model, pdir / "cameras.json", work)
         ev.to_csv(sdir / "eval_views.csv", index=False)
-        row = {"scene": name, "fit_seconds": round(wall, 1), "threads": torch.get_num_threads(),
+        row = {"scene": name, "fit_seconds": round(wall, 1), "fit_cpu_seconds": round(cpu, 1),
+               "load_start": round(load0, 1), "load_end": round(os.getloadavg()[0], 1),
+               "threads": torch.get_num_threads(),
                **{k: s[k] for k in ("iterations", "n_gaussians", "width", "height",
                                     "psnr_t0", "ssim_t0", "psnr_t1", "ssim_t1")}}
         for t in (0, 1):

@@ -97,8 +97,10 @@ def test_fit_outputs_loss_falls_and_quality(scene, fitted):
             "plane_tv", "time_l1"} <= set(log.columns)
     assert log["iteration"].tolist() == list(range(5, 201, 5))
     assert set(log["phase"]) == {"coarse", "fine"}
-    k = len(log) // 6
-    assert log["loss"].iloc[-k:].mean() < 0.7 * log["loss"].iloc[:k].mean()
+    # the coarse phase works on half-size images (coarse_downscale=2): compare within it
+    coarse = log[log["phase"] == "coarse"]["loss"]
+    k = len(coarse) // 4
+    assert coarse.iloc[-k:].mean() < 0.7 * coarse.iloc[:k].mean()
     q = pd.read_csv(out / "quality.csv")
     assert len(q) == 16 and set(q["set"]) == {"before", "after"}
     assert set(q["time"]) == {0.0, 1.0}

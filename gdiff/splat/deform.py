@@ -14,6 +14,10 @@ training), as in K-Planes.
 
 Heads are zero-initialised: the deformation is exactly zero until trained. Deltas are added
 to the raw parameters (means, log-scales, wxyz quaternion, opacity logit, SH coefficients).
+The positions enter the grid look-up as constants: the field is trained, the Gaussians move
+through their own position gradient and the Δposition head, not through the slope of the
+grid (that gradient is noisy on a piecewise-bilinear grid and costs a third of the look-up's
+backward pass).
 """
 
 from __future__ import annotations

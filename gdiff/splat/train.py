@@ -10,15 +10,26 @@ Training (after Wu et al., CVPR 2024, "4D Gaussian Splatting"):
 
 1. Gaussians start at the SfM points (colour from the points, isotropic scale from the RMS
    distance to the 3 nearest neighbours, opacity ``init_opacity``).
-2. Coarse phase (``coarse_iters``): static 3D Gaussians on all before and after images.
+2. Coarse phase (``coarse_iters``): static 3D Gaussians on all before and after images, except
+   that each Gaussian's opacity may differ between the times (``splats["dopacity"]``, see
+   :mod:`gdiff.splat.model`): an object that exists at one time only is kept opaque there and
+   transparent at the other time instead of being blended into a half-transparent compromise.
+   It renders at 1/``coarse_downscale`` of the working size: the first iterations, with few
+   large Gaussians that overlap everywhere, are the most expensive per pixel, and coarse
+   geometry and colour need no full-size images.
 3. Fine phase (``fine_iters``): the HexPlane deformation field is switched on (its box set to
    the Gaussians' extent) and trained with the Gaussians; each image is rendered at its time.
 
-Each iteration renders one training image (random order, every image once per epoch) at the
-working resolution (``max_side``); loss = L1 + ``ssim_lambda`` (1 - SSIM) + grid regularisers
+Each iteration renders one training image at the working resolution (``max_side``); every
+image is used once per epoch, before and after images alternating (random order within a
+time), so both states get the same share of the updates at every stage. Loss = L1 + ``ssim_lambda`` (1 - SSIM) + grid regularisers
 (fine phase). 3DGS adaptive density control runs every ``densify_every`` iterations between
 ``densify_from`` and ``densify_until`` (global iteration numbers), with thresholds scaled to
-the scene extent (camera spread); opacities are reset every ``opacity_reset_every``. The SH
+the scene extent (camera spread); a Gaussian's mean view-space gradient is taken over the views
+of the times at which it exists (opacity above ``prune_opacity``), so Gaussians of an object
+seen at one time only grow as readily as the others; pruning keeps a Gaussian that is opaque at
+any time. Growth stops at ``max_gaussians`` (the cost of a step is about linear in the number
+of Gaussians). Opacities are reset every ``opacity_reset_every``. The SH
 degree rises by one every ``sh_degree_interval`` iterations up to ``sh_degree``. The position
 learning rate decays exponentially over the whole run, the deformation's over the fine phase.
 
@@ -72,9 +83,10 @@ class FitOptions:
     """Options of the ``fit`` stage (config section ``fit``)."""
 
     # schedule
-    coarse_iters: int = 1500  # static phase on all images
-    fine_iters: int = 4500  # phase with the deformation field
+    coarse_iters: int = 500  # static phase on all images (opacity may still change over t)
+    fine_iters: int = 2500  # phase with the deformation field
     max_side: int = 320  # working resolution: longest image side in px (0 = native size)
+    coarse_downscale: int = 2  # the coarse phase renders at 1/k of the working size (1 = off)
     seed: int = 0
     # loss
     ssim_lambda: float = 0.2  # loss = L1 + ssim_lambda * (1 - SSIM) + regularisers
@@ -100,16 +112,16 @@ class FitOptions:
     sh_degree_interval: int = 500  # raise the active degree every N iterations
     # adaptive density control (iterations are global: coarse then fine)
     init_opacity: float = 0.1
-    densify_from: int = 300
-    densify_until: int = 4500
+    densify_from: int = 200
+    densify_until: int = 2000
     densify_every: int = 100
-    opacity_reset_every: int = 1500  # 0 = never
+    opacity_reset_every: int = 1000  # 0 = never
     grow_grad2d: float = 0.0002
     grow_scale3d: float = 0.01  # x extent
     prune_opacity: float = 0.005
     prune_scale3d: float = 0.1  # x extent
     prune_scale2d: float = 0.15  # x image size
-    max_gaussians: int = 300000
+    max_gaussians: int = 50000  # growth stops here (step cost is about linear in it)
     # deformation field
     deform: bool = True
     deform_position: bool = True
@@ -132,6 +144,8 @@ class FitOptions:
     backend: str = "auto"  # rasterizer backend: auto | torch | cpp | gsplat
 
     def __post_init__(self):
+        if self.coarse_downscale < 1:
+            raise ValueError(f"coarse_downscale must be >= 1, got {self.coarse_downscale}")
         for name in ("coarse_iters", "fine_iters", "max_side", "densify_every", "log_every",
                      "checkpoint_every", "sh_degree_interval", "max_gaussians",
                      "opacity_reset_every"):
@@ -177,16 +191,27 @@ class FitOptions:
 
 @dataclass
 class TrainView:
-    """One training image at the working resolution: image [H, W, 3] in [0, 1] (device)."""
+    """One training image at the working resolution: image [H, W, 3] in [0, 1] (device).
+
+    ``small`` optionally holds the same view downscaled (image [h, w, 3], K [1, 3, 3]) for the
+    coarse phase (see ``FitOptions.coarse_downscale``).
+    """
 
     camera: Camera
     image: torch.Tensor
     viewmat: torch.Tensor  # [1, 4, 4] world-to-camera
     K: torch.Tensor  # [1, 3, 3]
+    small: tuple[torch.Tensor, torch.Tensor] | None = None
 
     @property
     def time(self) -> float:
         return float(self.camera.time)
+
+    def at_scale(self, coarse: bool) -> tuple[torch.Tensor, torch.Tensor]:
+        """(image, K) to train on: the downscaled pair in the coarse phase when there is one."""
+        if coarse and self.small is not None:
+            return self.small
+        return self.image, self.K
 
 
 def working_scale(width: int, height: int, max_side: int) -> float:
@@ -197,8 +222,9 @@ def working_scale(width: int, height: int, max_side: int) -> float:
 
 
 def load_views(scene_dir: str | Path, cameras: list[Camera], max_side: int,
-               device: torch.device) -> list[TrainView]:
-    """Read the images of ``cameras`` (paths relative to ``scene_dir``) at the working size.
+               device: torch.device, downscale: int = 1) -> list[TrainView]:
+    """Read the images of ``cameras`` (paths relative to ``scene_dir``) at the working size
+    (and, with ``downscale`` > 1, also at 1/downscale of it, area-averaged).
 
     An image whose size differs from its camera's (same aspect) rescales the camera; a
     different aspect ratio is a :class:`SceneError`.
@@ -220,8 +246,13 @@ def load_views(scene_dir: str | Path, cameras: list[Camera], max_side: int,
             cam = cam.scaled(s)
             img = cv2.resize(img, (cam.width, cam.height), interpolation=cv2.INTER_AREA)
         t = lambda a: torch.tensor(a, dtype=torch.float32, device=device)[None]  # noqa: E731
+        small = None
+        if downscale > 1:
+            lo = cam.scaled(1.0 / downscale)
+            img_lo = cv2.resize(img, (lo.width, lo.height), interpolation=cv2.INTER_AREA)
+            small = (torch.from_numpy(np.ascontiguousarray(img_lo)).to(device), t(lo.K))
         views.append(TrainView(cam, torch.from_numpy(np.ascontiguousarray(img)).to(device),
-                               t(cam.w2c), t(cam.K)))
+                               t(cam.w2c), t(cam.K), small))
     return views
 
 
@@ -366,17 +397,18 @@ class Trainer:
                 m.active_sh_degree += 1
         self._set_lrs(it)
         view = self._next_view()
+        image, K = view.at_scale(it < o.coarse_iters)
         g = m.at_time(view.time)
-        h, w = view.image.shape[:2]
-        colors, _, meta = rasterize_gaussians(g, view.viewmat, view.K, w, h, self._background(),
+        h, w = image.shape[:2]
+        colors, _, meta = rasterize_gaussians(g, view.viewmat, K, w, h, self._background(),
                                               "RGB", o.backend)
         means2d = meta["means2d"]
         densify_now = o.densify_from <= it < o.densify_until and o.densify_every > 0
         if densify_now and means2d.requires_grad:
             means2d.retain_grad()
         pred = colors[0]
-        loss_l1 = l1(pred, view.image)
-        loss_ssim = 1.0 - ssim(pred, view.image)
+        loss_l1 = l1(pred, image)
+        loss_ssim = 1.0 - ssim(pred, image)
         loss = loss_l1 + o.ssim_lambda * loss_ssim
         terms = {}
         if m.deforming:
@@ -404,7 +436,7 @@ class Trainer:
             reset_opacity(m.splats, self.optimizer, 2.0 * o.prune_opacity)
         out = {"iteration": done, "phase": self.phase(it), "loss": float(loss.detach()),
                "l1": float(loss_l1.detach()), "ssim": 1.0 - float(loss_ssim.detach()),
-               "psnr": float(psnr(pred.detach().clamp(0, 1), view.image)),
+               "psnr": float(psnr(pred.detach().clamp(0, 1), image)),
                **{k: float(v.detach()) for k, v in terms.items()}, "n_gaussians": len(m)}
         if event is not None:
             out["densify"] = event
@@ -505,7 +537,8 @@ def fit_scene(scene_dir: str | Path, cameras_json: str | Path, points_ply: str |
             raise SceneError(f"{cameras_json}: no registered '{s}' images; the fit needs both "
                              "before and after images (check the poses stage)")
     xyz, rgb = read_points(points_ply)
-    views = load_views(scene_dir, cams, opts.max_side, dev)
+    views = load_views(scene_dir, cams, opts.max_side, dev,
+                       opts.coarse_downscale if opts.coarse_iters > 0 else 1)
     extent = camera_extent(np.stack([c.center for c in cams]))
     torch.manual_seed(opts.seed)
     model = GaussianModel4D.from_points(xyz, rgb, opts.sh_degree, opts.deform_config(),

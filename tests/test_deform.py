@@ -150,3 +150,23 @@ def test_static_model_and_bad_files(tmp_path):
     torch.save({"something": 1}, tmp_path / "other.pt")
     with pytest.raises(ModelFileError, match="other.pt"):
         load_model(tmp_path / "other.pt")
+
+
+def test_time_opacity_term_and_files_without_it(tmp_path):
+    """``dopacity`` moves the opacity logit by -d at t=0 and +d at t=1 (static model too),
+    is saved, and a model file from before the term loads with no change over time."""
+    xyz, rgb = _points(30)
+    m = GaussianModel4D.from_points(xyz, rgb, 0, None, init_opacity=0.5)
+    assert torch.equal(m.splats["dopacity"], torch.zeros(30))
+    with torch.no_grad():
+        m.splats["dopacity"][:10] = 3.0
+    o0, o1, oh = (m.at_time(t).opacities.detach() for t in (0.0, 1.0, 0.5))
+    assert torch.allclose(o0[:10], torch.sigmoid(torch.tensor(-3.0)).expand(10))
+    assert torch.allclose(o1[:10], torch.sigmoid(torch.tensor(3.0)).expand(10))
+    assert torch.allclose(oh, torch.full((30,), 0.5)) and torch.allclose(o0[10:], o1[10:])
+    save_model(m, tmp_path / "m.pt")
+    assert torch.equal(load_model(tmp_path / "m.pt").splats["dopacity"], m.splats["dopacity"])
+    old = {k: v for k, v in m.state_dict().items() if k != "splats.dopacity"}
+    back = GaussianModel4D.from_state(m.config(), old)
+    assert torch.equal(back.splats["dopacity"], torch.zeros(30))
+    assert torch.equal(back.at_time(0.0).opacities, back.at_time(1.0).opacities)

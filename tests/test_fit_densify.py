@@ -115,3 +115,23 @@ def test_reset_opacity_caps_and_clears_moments():
     st = opt.state[params["opacities"]]
     assert float(st["exp_avg"].abs().sum()) == 0.0
     _check_optimizer(params, opt)
+
+
+def test_opacity_reset_caps_every_time_and_stats_skip_absent_gaussians():
+    params, opt = _setup(4)
+    params["dopacity"] = nn.Parameter(torch.tensor([0.0, 4.0, -4.0, 0.0]))
+    with torch.no_grad():
+        params["opacities"][:] = torch.tensor([3.0, 0.0, 0.0, -8.0])
+    reset_opacity(params, opt, 0.01)
+    cap = math.log(0.01 / 0.99)
+    top = params["opacities"] + params["dopacity"].abs()  # largest logit over t in [0, 1]
+    assert torch.all(top <= cap + 1e-5)
+    assert math.isclose(float(params["opacities"].detach()[3]), -8.0)  # below the cap: kept
+    assert float(opt.state[params["opacities"]]["exp_avg"].abs().sum()) == 0.0
+    # a Gaussian marked absent in a view adds neither gradient nor count
+    st = DensifyStats(3)
+    grad = torch.tensor([[[0.001, 0.0], [0.001, 0.0], [0.001, 0.0]]])
+    radii = torch.tensor([[2, 2, 2]], dtype=torch.int32)
+    st.update(grad, radii, 200, 100, present=torch.tensor([True, False, True]))
+    assert torch.equal(st.count, torch.tensor([1.0, 0.0, 1.0]))
+    assert float(st.grad2d[1]) == 0.0 and float(st.grad2d[0]) > 0.0

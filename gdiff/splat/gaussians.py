@@ -111,17 +111,22 @@ def knn_scales(xyz: np.ndarray, k: int = 3) -> np.ndarray:
 
 
 def init_params(xyz: np.ndarray, rgb: np.ndarray, sh_degree: int = 3,
-                init_opacity: float = 0.1, knn: int = 3) -> dict[str, torch.Tensor]:
+                init_opacity: float = 0.1, knn: int = 3,
+                max_scale: float | None = None) -> dict[str, torch.Tensor]:
     """Raw parameters (see module docstring) for Gaussians at SfM points.
 
     xyz [P, 3] world positions; rgb [P, 3] colours in [0, 1] (sRGB-encoded). Scales are
-    isotropic, from nearest-neighbour distances; rotations identity; SH beyond degree 0 zero.
+    isotropic, from nearest-neighbour distances, at most ``max_scale`` (world units; isolated
+    far points otherwise start as Gaussians metres wide that cover every image and make the
+    first iterations very slow); rotations identity; SH beyond degree 0 zero.
     Returns float32 CPU tensors.
     """
     xyz = np.asarray(xyz, dtype=np.float64)
     rgb = np.clip(np.asarray(rgb, dtype=np.float64), 0.0, 1.0)
     n = len(xyz)
     s = knn_scales(xyz, knn)
+    if max_scale is not None:
+        s = np.minimum(s, max_scale)
     quats = np.zeros((n, 4))
     quats[:, 0] = 1.0
     k = num_sh_coeffs(sh_degree)

@@ -77,10 +77,11 @@ class GaussianModel4D(nn.Module):
     # ---------------------------------------------------------------- construction / config
     @classmethod
     def from_points(cls, xyz: np.ndarray, rgb: np.ndarray, sh_degree: int = 3,
-                    deform: DeformConfig | None = None, init_opacity: float = 0.1
-                    ) -> "GaussianModel4D":
-        """Gaussians at SfM points xyz [P, 3] with colours rgb [P, 3] in [0, 1]."""
-        params = init_params(xyz, rgb, sh_degree, init_opacity)
+                    deform: DeformConfig | None = None, init_opacity: float = 0.1,
+                    max_scale: float | None = None) -> "GaussianModel4D":
+        """Gaussians at SfM points xyz [P, 3] with colours rgb [P, 3] in [0, 1]; initial
+        scales at most ``max_scale`` (world units, see :func:`init_params`)."""
+        params = init_params(xyz, rgb, sh_degree, init_opacity, max_scale=max_scale)
         model = cls(len(xyz), sh_degree, deform)
         with torch.no_grad():
             for k, v in params.items():

@@ -9,7 +9,8 @@ Workflow entry point::
 Training (after Wu et al., CVPR 2024, "4D Gaussian Splatting"):
 
 1. Gaussians start at the SfM points (colour from the points, isotropic scale from the RMS
-   distance to the 3 nearest neighbours, opacity ``init_opacity``).
+   distance to the 3 nearest neighbours, at most ``init_max_scale`` x extent, opacity
+   ``init_opacity``).
 2. Coarse phase (``coarse_iters``): static 3D Gaussians on all before and after images, except
    that each Gaussian's opacity may differ between the times (``splats["dopacity"]``, see
    :mod:`gdiff.splat.model`): an object that exists at one time only is kept opaque there and
@@ -112,6 +113,7 @@ class FitOptions:
     sh_degree_interval: int = 500  # raise the active degree every N iterations
     # adaptive density control (iterations are global: coarse then fine)
     init_opacity: float = 0.1
+    init_max_scale: float = 0.05  # largest initial Gaussian scale, x extent
     densify_from: int = 200
     densify_until: int = 2000
     densify_every: int = 100
@@ -542,7 +544,8 @@ def fit_scene(scene_dir: str | Path, cameras_json: str | Path, points_ply: str |
     extent = camera_extent(np.stack([c.center for c in cams]))
     torch.manual_seed(opts.seed)
     model = GaussianModel4D.from_points(xyz, rgb, opts.sh_degree, opts.deform_config(),
-                                        opts.init_opacity).to(dev)
+                                        opts.init_opacity,
+                                        opts.init_max_scale * extent).to(dev)
     trainer = Trainer(model, views, opts, extent)
     log.info("fit: %d images (%d before, %d after) at %dx%d, %d initial Gaussians, extent %.3f",
              len(views), sum(c.set == "before" for c in cams), sum(c.set == "after" for c in cams),

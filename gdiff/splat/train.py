@@ -313,7 +313,7 @@ class Trainer:
                            "name": "grid"})
             groups.append({"params": m.deformation.mlp_parameters(),
                            "lr": o.lr_deform * self.extent, "name": "deform"})
-        return torch.optim.Adam(groups, lr=0.0, eps=1e-15)
+        return torch.optim.Adam(groups, lr=0.0, eps=1e-15, fused=self.device.type in ("cpu", "cuda"))
 
     def _set_lrs(self, it: int) -> None:
         o = self.opts

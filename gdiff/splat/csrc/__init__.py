@@ -7,6 +7,9 @@ default ``~/.cache/torch_extensions``); later processes reuse the build. If comp
 ``load(required=False)`` logs one warning and returns None, and the rasterizer falls back to
 the torch backend. Set ``GDIFF_NO_CPP=1`` to skip the kernel altogether.
 
+The build also holds ``hexplane_cpu.cpp``: :func:`hexplane_sample`, the bilinear look-up of
+the deformation field's feature planes (see :mod:`gdiff.splat.deform`).
+
 :func:`rasterize_cpp` has the same contract as
 :func:`gdiff.splat.rasterize.rasterize_torch` (it is tested against it) and a hand-written
 backward pass.
@@ -28,6 +31,7 @@ log = logging.getLogger("gdiff.splat.csrc")
 
 TILE_SIZE = 16
 _SRC = Path(__file__).with_name("rasterize_cpu.cpp")
+_SOURCES = [_SRC, Path(__file__).with_name("hexplane_cpu.cpp")]
 _lock = threading.Lock()
 _module = None
 _failed: str | None = None
@@ -49,7 +53,7 @@ def load(required: bool = False, verbose: bool = False):
                     from torch.utils.cpp_extension import load as _load
 
                     name = f"gdiff_splat_cpu_{platform.machine()}"
-                    _load(name=name, sources=[str(_SRC)], verbose=verbose,
+                    _load(name=name, sources=[str(p) for p in _SOURCES], verbose=verbose,
                           is_python_module=False,
                           extra_cflags=["-O3", "-march=native", "-ffp-contract=off",
                                         "-fno-math-errno"])
@@ -119,3 +123,39 @@ def rasterize_cpp(means2d: torch.Tensor, conics: torch.Tensor, colors: torch.Ten
 
         means2d.register_hook(hook)
     return out, alpha
+
+
+class _HexPlaneSample(torch.autograd.Function):
+    @staticmethod
+    def forward(ctx, table, coords, planes, group):
+        out = load(required=True).hexplane_forward(table, coords, planes, group)
+        ctx.save_for_backward(table, coords, planes)
+        ctx.group = group
+        return out
+
+    @staticmethod
+    def backward(ctx, grad):
+        table, coords, planes = ctx.saved_tensors
+        g = load(required=True).hexplane_backward(table, grad.contiguous(), coords, planes,
+                                                  ctx.group)
+        return g, None, None, None
+
+
+def hexplane_sample(table: torch.Tensor, coords: torch.Tensor, planes: torch.Tensor,
+                    group: int) -> torch.Tensor:
+    """Bilinear look-up of many feature planes stored in one channels-last table, with the
+    samples of each group of ``group`` consecutive planes multiplied (one HexPlane level).
+
+    Args:
+        table: [R, F] float32 CPU; plane p's texel (x, y) is row ``offset_p + y * W_p + x``.
+        coords: [N, 4] float32 normalised coordinates in [-1, 1] (no gradient).
+        planes: [P, 5] int64 rows ``(axis a, axis b, W, H, offset)``: plane p samples
+            ``coords[:, a]`` along its width and ``coords[:, b]`` along its height; P is a
+            multiple of ``group``.
+        group: planes per product (6 for a HexPlane level).
+    Returns:
+        [N, P / group, F]: per group, the product of ``grid_sample(bilinear, border,
+        align_corners=True)`` of its planes; differentiable with respect to ``table``.
+    """
+    return _HexPlaneSample.apply(table.contiguous(), coords.detach().contiguous(),
+                                 planes.contiguous(), int(group))

@@ -67,6 +67,17 @@ class PosesOptions:
             downscaled for SIFT; poses and intrinsics stay in full-resolution pixels).
         max_num_features: SIFT features per image.
         min_num_matches: verified matches needed for an image pair to count in mapping.
+        max_reproj_error: reprojection error (pixels of the feature-extraction image) above
+            which an observation is an outlier: used by the mapper (triangulation, filtering;
+            camera registration allows 3x, two-view RANSAC 2x) and by the final refinement.
+            COLMAP's default of 4 px is meant for megapixel photos; on small images it lets
+            false matches (e.g. on moving shadow edges) bias the focal length and rotations.
+        refine_iterations: rounds of the final global refinement (bundle adjustment of all
+            cameras, shared intrinsics and points with a Cauchy loss, then removal of
+            observations beyond ``max_reproj_error``); 0 keeps the mapper's model as is.
+        mapper_attempts: incremental mapping runs (seeds ``seed``, ``seed + 1``, ...) tried
+            while the best model so far leaves images unregistered; the model with the most
+            registered images, then the lowest reprojection error, is kept.
         refine_principal_point: let bundle adjustment move the principal point (off = keep it
             at the image centre, COLMAP's default).
         max_unregistered_fraction: if a set (before, after, eval_before, eval_after) loses more
@@ -86,6 +97,9 @@ class PosesOptions:
     max_image_size: int = 1600
     max_num_features: int = 8192
     min_num_matches: int = 15
+    max_reproj_error: float = 2.0
+    refine_iterations: int = 3
+    mapper_attempts: int = 3
     refine_principal_point: bool = False
     max_unregistered_fraction: float = 0.2
     num_threads: int = -1
@@ -105,6 +119,10 @@ class PosesOptions:
             raise ValueError("max_unregistered_fraction must lie in [0, 1]")
         if self.sequential_overlap < 1 or self.sequential_links < 0:
             raise ValueError("sequential_overlap must be >= 1 and sequential_links >= 0")
+        if not self.max_reproj_error > 0:
+            raise ValueError("max_reproj_error must be > 0 (pixels)")
+        if self.refine_iterations < 0 or self.mapper_attempts < 1:
+            raise ValueError("refine_iterations must be >= 0 and mapper_attempts >= 1")
 
 
 # --------------------------------------------------------------------------------------------
@@ -247,14 +265,28 @@ def _extract(db: Path, scene_dir: Path, names: list[str], opts: PosesOptions,
                               device=pycolmap.Device.cpu)
 
 
-def _match(db: Path, work: Path, opts: PosesOptions, pairs: list[tuple[str, str]] | None) -> None:
-    """Exhaustive matching if ``pairs`` is None, else match exactly ``pairs``."""
+def extraction_scale(sizes: dict[str, tuple[int, int]], max_image_size: int) -> float:
+    """Full-resolution pixels per feature-extraction pixel (>= 1): images whose longer side
+    exceeds ``max_image_size`` are downscaled for SIFT, so keypoint noise measured in
+    full-resolution pixels grows by this factor. The largest factor over ``sizes``
+    (``name -> (width, height)``) is returned."""
+    longest = max(max(wh) for wh in sizes.values())
+    if max_image_size <= 0 or longest <= max_image_size:
+        return 1.0
+    return longest / float(max_image_size)
+
+
+def _match(db: Path, work: Path, opts: PosesOptions, pairs: list[tuple[str, str]] | None,
+           pixel_scale: float = 1.0) -> None:
+    """Exhaustive matching if ``pairs`` is None, else match exactly ``pairs``; two-view RANSAC
+    threshold ``2 * max_reproj_error`` extraction pixels (``pixel_scale`` full-res px each)."""
     import pycolmap
 
     mo = pycolmap.FeatureMatchingOptions()
     mo.num_threads = opts.num_threads
     vo = pycolmap.TwoViewGeometryOptions()
     vo.ransac.random_seed = opts.seed
+    vo.ransac.max_error = 2.0 * opts.max_reproj_error * pixel_scale
     if pairs is None:
         pycolmap.match_exhaustive(db, matching_options=mo, verification_options=vo,
                                   device=pycolmap.Device.cpu)
@@ -282,18 +314,68 @@ def _db_stats(db: Path, min_inliers: int) -> dict:
         d.close()
 
 
-def _mapper_options(opts: PosesOptions, n_images: int):
+def _mapper_options(opts: PosesOptions, n_images: int, pixel_scale: float = 1.0,
+                    seed: int | None = None):
+    """COLMAP incremental-mapper options; pixel thresholds from ``opts.max_reproj_error``
+    (extraction pixels, times ``pixel_scale`` for full-resolution pixels)."""
     import pycolmap
 
     mp = pycolmap.IncrementalPipelineOptions()
     mp.num_threads = opts.num_threads
-    mp.random_seed = opts.seed
+    mp.random_seed = opts.seed if seed is None else seed
+    err = opts.max_reproj_error * pixel_scale
+    mp.mapper.filter_max_reproj_error = err
+    mp.mapper.init_max_error = err
+    mp.mapper.abs_pose_max_error = 3.0 * err
+    mp.triangulation.merge_max_reproj_error = err
+    mp.triangulation.complete_max_reproj_error = err
     mp.min_num_matches = opts.min_num_matches
     mp.min_model_size = max(2, min(10, n_images // 4))
     mp.multiple_models = True
     mp.extract_colors = True
     mp.ba_refine_principal_point = bool(opts.refine_principal_point)
     return mp
+
+
+def refine_model(rec, max_error: float, iterations: int, refine_principal_point: bool = False,
+                 num_threads: int = -1) -> dict:
+    """Final global refinement of a reconstruction, in place.
+
+    Each round bundle-adjusts all registered cameras, their (shared) intrinsics and all points
+    with a Cauchy loss of scale ``max_error / 2`` (so residuals of a few pixels from false
+    matches that survived mapping have little pull), then deletes observations whose
+    reprojection error exceeds ``max_error`` or whose points have a triangulation angle
+    < 1.5 deg. The focal length is refined; the principal point only if asked.
+
+    Args:
+        rec: ``pycolmap.Reconstruction`` (modified).
+        max_error: outlier threshold in pixels of the images as stored.
+        iterations: rounds (0 = nothing is done).
+
+    Returns:
+        ``{"rounds", "removed_observations", "reprojection_before", "reprojection_after"}``
+        (mean reprojection errors in pixels).
+    """
+    import pycolmap
+
+    before = float(rec.compute_mean_reprojection_error())
+    bo = pycolmap.BundleAdjustmentOptions()
+    bo.print_summary = False
+    bo.refine_focal_length = True
+    bo.refine_principal_point = bool(refine_principal_point)
+    bo.ceres.loss_function_type = pycolmap.LossFunctionType.CAUCHY
+    bo.ceres.loss_function_scale = 0.5 * max_error
+    bo.ceres.solver_options.num_threads = num_threads
+    removed = 0
+    for _ in range(iterations):
+        pycolmap.bundle_adjustment(rec, bo)
+        removed += int(pycolmap.ObservationManager(rec).filter_all_points3D(max_error, 1.5))
+    after = float(rec.compute_mean_reprojection_error())
+    if iterations:
+        log.info("global refinement: %d rounds, %d outlier observations removed, mean "
+                 "reprojection error %.3f -> %.3f px", iterations, removed, before, after)
+    return {"rounds": iterations, "removed_observations": removed,
+            "reprojection_before": before, "reprojection_after": after}
 
 
 def _camera_of(image, rec) -> tuple[int, int, float, float, float, float]:
@@ -531,7 +613,8 @@ def run_poses(scene_dir: str | os.PathLike, out_dir: str | os.PathLike,
     Returns:
         Summary dict: ``source`` (colmap | known), ``matcher``, ``images`` and ``registered``
         (counts per set), ``dropped`` (image names), ``num_models``, ``num_points``,
-        ``mean_reprojection_error`` (pixels), ``seconds``.
+        ``mean_reprojection_error`` (pixels), ``seconds``; for COLMAP also
+        ``mapper_attempts`` and ``refinement`` (see :func:`refine_model`).
 
     Raises:
         PosesError: registration failed, or a set lost too many images.
@@ -604,6 +687,7 @@ def _run_colmap(root: Path, work: Path, images, sizes, opts: PosesOptions):
     if not single:
         log.info("images differ in size: one camera per image")
     pycolmap.set_random_seed(opts.seed)
+    scale = extraction_scale(sizes, opts.max_image_size)
     _extract(db, root, names, opts, single_camera=single)
     matcher = opts.matcher
     if matcher == "auto":
@@ -617,13 +701,11 @@ def _run_colmap(root: Path, work: Path, images, sizes, opts: PosesOptions):
                                  opts.sequential_links)
         log.info("matching: sequential (%d pairs: %d capture-order neighbours + %d links per "
                  "image and set)", len(pairs), opts.sequential_overlap, opts.sequential_links)
-    _match(db, work, opts, pairs)
+    _match(db, work, opts, pairs, scale)
     stats = _db_stats(db, opts.min_num_matches)
     log.info("features: %.0f keypoints per image; %d image pairs with >= %d verified matches",
              stats["mean_keypoints"], stats["verified_pairs"], opts.min_num_matches)
-    recs = pycolmap.incremental_mapping(db, root, work / "mapper",
-                                        options=_mapper_options(opts, len(names)))
-    models = sorted(recs.values(), key=lambda r: r.num_reg_images(), reverse=True)
+    models, attempts = _map_best(db, root, work, opts, len(names), scale)
     if not models or models[0].num_reg_images() < 2:
         raise PosesError(
             f"{root}: COLMAP could not register the images ({stats['verified_pairs']} verified "
@@ -647,6 +729,8 @@ def _run_colmap(root: Path, work: Path, images, sizes, opts: PosesOptions):
     by_name = {rec.images[i].name: rec.images[i] for i in rec.reg_image_ids()}
     dropped = _check_unregistered(images, set(by_name), opts.max_unregistered_fraction,
                                   f"COLMAP registration of {root}")
+    refine = refine_model(rec, opts.max_reproj_error * scale, opts.refine_iterations,
+                          opts.refine_principal_point, opts.num_threads)
     cams = []
     for n, st in images:
         if n in dropped:
@@ -657,9 +741,49 @@ def _run_colmap(root: Path, work: Path, images, sizes, opts: PosesOptions):
                            time=SET_TIME[st]))
     summary = {"source": "colmap", "matcher": matcher, "images": _count(images),
                "registered": _count(images, set(by_name)), "dropped": dropped,
-               "num_models": len(models), "num_points": int(rec.num_points3D()),
-               "mean_reprojection_error": float(rec.compute_mean_reprojection_error())}
+               "num_models": len(models), "mapper_attempts": attempts,
+               "num_points": int(rec.num_points3D()),
+               "mean_reprojection_error": float(rec.compute_mean_reprojection_error()),
+               "refinement": refine}
     return cams, rec, summary
+
+
+def _model_key(rec) -> tuple[int, float]:
+    """Ranking of candidate models: more registered images first, then lower mean
+    reprojection error."""
+    return rec.num_reg_images(), -float(rec.compute_mean_reprojection_error())
+
+
+def _map_best(db: Path, root: Path, work: Path, opts: PosesOptions, n_images: int,
+              scale: float) -> tuple[list, int]:
+    """Incremental mapping, repeated with the next seeds (up to ``opts.mapper_attempts`` runs)
+    while the best model leaves images unregistered.
+
+    Returns:
+        ``(models, attempts)``: the models of the best run, largest first, and the number of
+        runs made.
+    """
+    import pycolmap
+
+    best: list = []
+    attempts = 0
+    for k in range(opts.mapper_attempts):
+        seed = opts.seed + k
+        pycolmap.set_random_seed(seed)
+        recs = pycolmap.incremental_mapping(
+            db, root, work / f"mapper{k}",
+            options=_mapper_options(opts, n_images, scale, seed=seed))
+        attempts += 1
+        models = sorted(recs.values(), key=_model_key, reverse=True)
+        if models and (not best or _model_key(models[0]) > _model_key(best[0])):
+            best = models
+        n_best = best[0].num_reg_images() if best else 0
+        if n_best == n_images:
+            break
+        if k + 1 < opts.mapper_attempts:
+            log.info("mapping run %d (seed %d) registered %d of %d images in its largest "
+                     "model; trying seed %d", k + 1, seed, n_best, n_images, seed + 1)
+    return best, attempts
 
 
 def _run_known(root: Path, work: Path, images, sizes, known, opts: PosesOptions):
@@ -688,12 +812,14 @@ def _run_known(root: Path, work: Path, images, sizes, known, opts: PosesOptions)
     else:
         pairs, matcher = proximity_pairs(cams, opts.sequential_overlap +
                                          opts.sequential_links), "proximity"
-    _match(db, work, opts, pairs)
+    _match(db, work, opts, pairs, extraction_scale(sizes, opts.max_image_size))
     rec = _known_reconstruction(db, matched)
     tri_dir = work / "triangulated"
     tri_dir.mkdir()
     rec = pycolmap.triangulate_points(rec, db, root, tri_dir, clear_points=True,
-                                      options=_mapper_options(opts, len(names)),
+                                      options=_mapper_options(
+                                          opts, len(names),
+                                          extraction_scale(sizes, opts.max_image_size)),
                                       refine_intrinsics=False)
     if rec.num_points3D() == 0:
         raise PosesError(

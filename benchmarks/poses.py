@@ -4,11 +4,14 @@ Usage::
 
     python benchmarks/poses.py SCENE_DIR [--matcher auto|exhaustive|sequential] [--out DIR]
         [--camera-model PINHOLE|SIMPLE_PINHOLE] [--refine-principal-point] [--csv FILE]
+        [--max-reproj-error PX] [--refine-iterations N] [--mapper-attempts N] [--threads N]
 
 SCENE_DIR must hold ``gt_cameras.json`` (e.g. the shared test scenes). Runs the poses stage
 with COLMAP (ignoring any known poses), aligns the estimated camera centres to the ground truth
 with a Sim3 and prints: % of images registered, median rotation error (deg), median centre
-error (% of the GT orbit radius, the median distance of GT centres from their centroid), time.
+error (% of the GT orbit radius, the median distance of GT centres from their centroid), the
+estimated focal length against the true one, time and the 1-minute load average at start and end
+(timings on a shared machine are only comparable at similar load).
 Targets: >= 95 % registered, median rotation < 1 deg, median centre error < 2 %.
 """
 
@@ -16,6 +19,7 @@ from __future__ import annotations
 
 import argparse
 import logging
+import os
 import sys
 import tempfile
 import time
@@ -33,6 +37,11 @@ def main(argv=None) -> int:
     ap.add_argument("--matcher", default="auto", choices=["auto", "exhaustive", "sequential"])
     ap.add_argument("--camera-model", default="PINHOLE", choices=["PINHOLE", "SIMPLE_PINHOLE"])
     ap.add_argument("--refine-principal-point", action="store_true")
+    d = PosesOptions()
+    ap.add_argument("--max-reproj-error", type=float, default=d.max_reproj_error)
+    ap.add_argument("--refine-iterations", type=int, default=d.refine_iterations)
+    ap.add_argument("--mapper-attempts", type=int, default=d.mapper_attempts)
+    ap.add_argument("--threads", type=int, default=d.num_threads)
     ap.add_argument("--out", help="keep the poses outputs here (default: a temporary folder)")
     ap.add_argument("--csv", help="write the per-image errors to this CSV")
     args = ap.parse_args(argv)
@@ -46,10 +55,14 @@ def main(argv=None) -> int:
     with tempfile.TemporaryDirectory() as tmp:
         out = Path(args.out) if args.out else Path(tmp)
         t0 = time.time()
+        load0 = os.getloadavg()[0]
         summary = run_poses(scene, out, PosesOptions(
             source="colmap", matcher=args.matcher, camera_model=args.camera_model,
-            refine_principal_point=args.refine_principal_point))
+            refine_principal_point=args.refine_principal_point,
+            max_reproj_error=args.max_reproj_error, refine_iterations=args.refine_iterations,
+            mapper_attempts=args.mapper_attempts, num_threads=args.threads))
         seconds = time.time() - t0
+        load1 = os.getloadavg()[0]
         est = load_cameras(out / "cameras.json")
     df = pose_errors(est, gt)
     if args.csv:
@@ -67,7 +80,13 @@ def main(argv=None) -> int:
           f"{df.attrs['orbit_radius']:.3f})")
     print(f"mean reproj. error  {summary['mean_reprojection_error']:.3f} px, "
           f"{summary['num_points']} points")
-    print(f"time                {seconds:.1f} s")
+    g = gt[0]
+    print(f"focal length        {est[0].fx:.2f}, {est[0].fy:.2f} px (true {g.fx:.2f}, "
+          f"{g.fy:.2f}); principal point {est[0].cx:.2f}, {est[0].cy:.2f}")
+    print(f"mapping runs        {summary.get('mapper_attempts', 1)}, refinement "
+          f"{summary.get('refinement')}")
+    print(f"time                {seconds:.1f} s (load average {load0:.1f} at start, "
+          f"{load1:.1f} at end, {os.cpu_count()} CPUs)")
     ok = (n_reg / n_img >= 0.95 and df.rot_err_deg.median() < 1.0
           and df.center_err_frac.median() < 0.02)
     print("targets            ", "met" if ok else "NOT met")

@@ -75,9 +75,12 @@ class PosesOptions:
         refine_iterations: rounds of the final global refinement (bundle adjustment of all
             cameras, shared intrinsics and points with a Cauchy loss, then removal of
             observations beyond ``max_reproj_error``); 0 keeps the mapper's model as is.
-        mapper_attempts: incremental mapping runs (seeds ``seed``, ``seed + 1``, ...) tried
-            while the best model so far leaves images unregistered; the model with the most
-            registered images, then the lowest reprojection error, is kept.
+        mapper_attempts: incremental mapping runs tried while the best model so far leaves
+            images unregistered. Run k (from 0) uses seed ``seed + k`` and mapper thresholds
+            ``(k + 1) * max_reproj_error``: a strict threshold keeps mapping accurate, a looser
+            one can register weakly connected images (the final refinement then removes the
+            outliers at ``max_reproj_error``). The model with the most registered images, then
+            the lowest reprojection error, is kept.
         refine_principal_point: let bundle adjustment move the principal point (off = keep it
             at the image centre, COLMAP's default).
         max_unregistered_fraction: if a set (before, after, eval_before, eval_after) loses more
@@ -315,15 +318,15 @@ def _db_stats(db: Path, min_inliers: int) -> dict:
 
 
 def _mapper_options(opts: PosesOptions, n_images: int, pixel_scale: float = 1.0,
-                    seed: int | None = None):
-    """COLMAP incremental-mapper options; pixel thresholds from ``opts.max_reproj_error``
+                    seed: int | None = None, relax: float = 1.0):
+    """COLMAP incremental-mapper options; pixel thresholds ``relax * opts.max_reproj_error``
     (extraction pixels, times ``pixel_scale`` for full-resolution pixels)."""
     import pycolmap
 
     mp = pycolmap.IncrementalPipelineOptions()
     mp.num_threads = opts.num_threads
     mp.random_seed = opts.seed if seed is None else seed
-    err = opts.max_reproj_error * pixel_scale
+    err = relax * opts.max_reproj_error * pixel_scale
     mp.mapper.filter_max_reproj_error = err
     mp.mapper.init_max_error = err
     mp.mapper.abs_pose_max_error = 3.0 * err
@@ -756,8 +759,9 @@ def _model_key(rec) -> tuple[int, float]:
 
 def _map_best(db: Path, root: Path, work: Path, opts: PosesOptions, n_images: int,
               scale: float) -> tuple[list, int]:
-    """Incremental mapping, repeated with the next seeds (up to ``opts.mapper_attempts`` runs)
-    while the best model leaves images unregistered.
+    """Incremental mapping, repeated with the next seed and a looser threshold (run k:
+    ``seed + k``, ``(k + 1) * max_reproj_error``; up to ``opts.mapper_attempts`` runs) while
+    the best model leaves images unregistered.
 
     Returns:
         ``(models, attempts)``: the models of the best run, largest first, and the number of
@@ -772,7 +776,7 @@ def _map_best(db: Path, root: Path, work: Path, opts: PosesOptions, n_images: in
         pycolmap.set_random_seed(seed)
         recs = pycolmap.incremental_mapping(
             db, root, work / f"mapper{k}",
-            options=_mapper_options(opts, n_images, scale, seed=seed))
+            options=_mapper_options(opts, n_images, scale, seed=seed, relax=k + 1.0))
         attempts += 1
         models = sorted(recs.values(), key=_model_key, reverse=True)
         if models and (not best or _model_key(models[0]) > _model_key(best[0])):
@@ -781,8 +785,9 @@ def _map_best(db: Path, root: Path, work: Path, opts: PosesOptions, n_images: in
         if n_best == n_images:
             break
         if k + 1 < opts.mapper_attempts:
-            log.info("mapping run %d (seed %d) registered %d of %d images in its largest "
-                     "model; trying seed %d", k + 1, seed, n_best, n_images, seed + 1)
+            log.info("mapping: best model so far registers %d of %d images; run %d with "
+                     "seed %d and a %.1f px threshold", n_best, n_images, k + 2, seed + 1,
+                     (k + 2) * opts.max_reproj_error * scale)
     return best, attempts
 
 

@@ -361,6 +361,7 @@ def refine_model(rec, max_error: float, iterations: int, refine_principal_point:
     """
     import pycolmap
 
+    rec.update_point_3d_errors()  # the stored errors may predate edits to the model
     before = float(rec.compute_mean_reprojection_error())
     bo = pycolmap.BundleAdjustmentOptions()
     bo.print_summary = False
@@ -373,6 +374,7 @@ def refine_model(rec, max_error: float, iterations: int, refine_principal_point:
     for _ in range(iterations):
         pycolmap.bundle_adjustment(rec, bo)
         removed += int(pycolmap.ObservationManager(rec).filter_all_points3D(max_error, 1.5))
+    rec.update_point_3d_errors()
     after = float(rec.compute_mean_reprojection_error())
     if iterations:
         log.info("global refinement: %d rounds, %d outlier observations removed, mean "

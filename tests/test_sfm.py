@@ -15,9 +15,9 @@ from gdiff.cameras import cameras_to_json, cameras_to_transforms, load_cameras
 from gdiff.errors import ConfigError, PosesError
 from gdiff.io import write_image
 from gdiff.options import from_config
-from gdiff.sfm import (PosesOptions, discover_images, proximity_pairs, read_cameras_file,
-                       read_points_ply, run_poses, sequential_pairs, set_from_path,
-                       write_points_ply)
+from gdiff.sfm import (PosesOptions, _mapper_options, discover_images, extraction_scale,
+                       proximity_pairs, read_cameras_file, read_points_ply, refine_model,
+                       run_poses, sequential_pairs, set_from_path, write_points_ply)
 
 
 def _linked_scene(src: Path, dst: Path) -> Path:
@@ -53,6 +53,9 @@ def test_register_tiny_all_sets_accurate(registered_tiny, gt_tiny, synth_tiny_di
     images = discover_images(synth_tiny_dir)
     assert summary["source"] == "colmap" and summary["matcher"] == "exhaustive"
     assert summary["registered"] == summary["images"]
+    assert summary["mapper_attempts"] == 1  # all registered in the first run
+    ref = summary["refinement"]
+    assert ref["rounds"] == 3 and ref["reprojection_after"] <= ref["reprojection_before"]
     assert summary["images"] == {"before": 10, "after": 10, "eval_before": 3, "eval_after": 3}
     assert summary["mean_reprojection_error"] < 1.0
     cams = load_cameras(out / "cameras.json")
@@ -93,6 +96,57 @@ def test_register_tiny_writes_model_and_points(registered_tiny):
     inside = (uv[:, 0] >= 0) & (uv[:, 0] < c.width) & (uv[:, 1] >= 0) & (uv[:, 1] < c.height)
     assert inside.sum() > 50  # the first camera sees a good part of the cloud
     assert not list(out.glob(".poses_work_*"))  # temporary folder cleaned up
+
+
+def test_refine_model_recovers_focal_and_removes_outliers(registered_tiny, gt_tiny):
+    """The final refinement pulls a 4 % focal-length error back and drops gross outliers."""
+    import pycolmap
+
+    out, _ = registered_tiny
+    rec = pycolmap.Reconstruction(str(out / "sparse" / "0"))
+    cam = next(iter(rec.cameras.values()))
+    true_f = gt_tiny[0].fx
+    p = np.asarray(cam.params, dtype=np.float64)
+    p[:2] *= 0.96
+    cam.params = p.tolist()
+    # corrupt 40 observations by 8 px (false matches the mapper kept)
+    rng = np.random.default_rng(0)
+    corrupted = 0
+    for iid in rec.reg_image_ids():
+        im = rec.images[iid]
+        obs = [k for k, pt in enumerate(im.points2D) if pt.has_point3D()]
+        for k in rng.choice(obs, size=5, replace=False):
+            im.points2D[int(k)].xy = im.points2D[int(k)].xy + rng.choice([-8.0, 8.0], size=2)
+            corrupted += 1
+        if corrupted >= 40:
+            break
+    n_obs = sum(len(rec.points3D[i].track.elements) for i in rec.points3D)
+    rep = refine_model(rec, max_error=2.0, iterations=3, num_threads=2)
+    f = np.asarray(rec.cameras[cam.camera_id].params)[:2]
+    assert np.all(np.abs(f - true_f) / true_f < 0.02), (f, true_f)
+    assert corrupted <= rep["removed_observations"] < 0.2 * n_obs
+    assert rep["reprojection_after"] < 0.6 < rep["reprojection_before"]
+    # nothing left beyond the threshold
+    for pid in rec.points3D:
+        assert rec.points3D[pid].error <= 2.0 + 1e-6
+    # zero rounds leave the model untouched
+    before = np.asarray(rec.cameras[cam.camera_id].params).copy()
+    assert refine_model(rec, 2.0, 0)["removed_observations"] == 0
+    assert np.array_equal(np.asarray(rec.cameras[cam.camera_id].params), before)
+
+
+def test_thresholds_scale_with_extraction_size():
+    assert extraction_scale({"a": (320, 240), "b": (320, 240)}, 1600) == 1.0
+    assert extraction_scale({"a": (4000, 3000), "b": (320, 240)}, 1600) == 2.5
+    assert extraction_scale({"a": (4000, 3000)}, -1) == 1.0  # -1: no downscaling
+    opts = PosesOptions(max_reproj_error=2.0)
+    mp = _mapper_options(opts, 40, pixel_scale=2.5)
+    assert mp.mapper.filter_max_reproj_error == pytest.approx(5.0)
+    assert mp.triangulation.complete_max_reproj_error == pytest.approx(5.0)
+    assert mp.mapper.abs_pose_max_error == pytest.approx(15.0)
+    relaxed = _mapper_options(opts, 40, pixel_scale=1.0, seed=7, relax=2.0)
+    assert relaxed.mapper.filter_max_reproj_error == pytest.approx(4.0)
+    assert relaxed.random_seed == 7
 
 
 # ------------------------------------------------------------------ known poses
@@ -171,7 +225,8 @@ def test_unregistered_fraction_error_and_drop(synth_tiny_dir, tmp_path, caplog):
     noise = ["before/900.png", "before/901.png", "before/902.png"]
     # 3 of 13 before images lost = 23% > 20%
     with pytest.raises(PosesError, match=r"before: 3 of 13 \(" + ", ".join(noise) + r"\)"):
-        run_poses(scene, tmp_path / "p1", PosesOptions(num_threads=2), images=images)
+        run_poses(scene, tmp_path / "p1", PosesOptions(num_threads=2, mapper_attempts=1),
+                  images=images)
     # with a looser limit the noise images are dropped with a warning (sequential matcher)
     with caplog.at_level(logging.WARNING, logger="gdiff.sfm"):
         summary = run_poses(scene, tmp_path / "p2",
@@ -180,6 +235,8 @@ def test_unregistered_fraction_error_and_drop(synth_tiny_dir, tmp_path, caplog):
                                          num_threads=2), images=images)
     assert summary["matcher"] == "sequential"
     assert summary["dropped"] == noise
+    # the noise images stay out however often mapping is retried (seeds, looser thresholds)
+    assert summary["mapper_attempts"] == 3
     assert summary["registered"] == {"before": 10, "after": 10}
     assert "dropping 3 image(s)" in caplog.text
     names = [c.image for c in load_cameras(tmp_path / "p2" / "cameras.json")]
@@ -210,6 +267,10 @@ def test_options_validation():
         from_config(PosesOptions, {"camera_model": "OPENCV"}, "poses")
     with pytest.raises(ConfigError, match="unknown key"):
         from_config(PosesOptions, {"matchr": "x"}, "poses")
+    with pytest.raises(ConfigError, match="max_reproj_error"):
+        from_config(PosesOptions, {"max_reproj_error": 0}, "poses")
+    with pytest.raises(ConfigError, match="mapper_attempts"):
+        from_config(PosesOptions, {"mapper_attempts": 0}, "poses")
 
 
 def test_set_from_path():

@@ -7,6 +7,13 @@ Two sources of poses:
   large ones a vocabulary-free pair list is used: neighbours in capture order inside each set
   (with wrap-around, for orbits) plus evenly spaced links from every image into every set, so
   the before, after and eval sets are tied together without a vocabulary tree file.
+  Outlier thresholds are ``max_reproj_error`` pixels of the feature-extraction image (COLMAP's
+  4 px defaults suit megapixel photos; on 320 px images false matches, e.g. on shadow edges
+  that move between before and after, then survive and pull the focal length and rotations).
+  Mapping is retried with further seeds and looser thresholds while images stay
+  unregistered, and the kept model gets a final global refinement: bundle adjustment of all
+  cameras, the shared intrinsics and points under a Cauchy loss, alternated with removal of
+  observations beyond the threshold.
 * ``known`` — ``cameras.json`` (gdiff layout, or the ground-truth layout with an
   ``intrinsics`` block) or a nerfstudio / instant-ngp ``transforms.json`` in the scene folder.
   The poses are kept as given and sparse points are triangulated with pycolmap from features

@@ -5,6 +5,7 @@ Usage::
     python benchmarks/poses.py SCENE_DIR [--matcher auto|exhaustive|sequential] [--out DIR]
         [--camera-model PINHOLE|SIMPLE_PINHOLE] [--refine-principal-point] [--csv FILE]
         [--max-reproj-error PX] [--refine-iterations N] [--mapper-attempts N] [--threads N]
+        [--dsp|--no-dsp]
 
 SCENE_DIR must hold ``gt_cameras.json`` (e.g. the shared test scenes). Runs the poses stage
 with COLMAP (ignoring any known poses), aligns the estimated camera centres to the ground truth
@@ -42,6 +43,8 @@ def main(argv=None) -> int:
     ap.add_argument("--refine-iterations", type=int, default=d.refine_iterations)
     ap.add_argument("--mapper-attempts", type=int, default=d.mapper_attempts)
     ap.add_argument("--threads", type=int, default=d.num_threads)
+    ap.add_argument("--dsp", action=argparse.BooleanOptionalAction,
+                    default=d.domain_size_pooling, help="DSP-SIFT descriptors")
     ap.add_argument("--out", help="keep the poses outputs here (default: a temporary folder)")
     ap.add_argument("--csv", help="write the per-image errors to this CSV")
     args = ap.parse_args(argv)
@@ -60,7 +63,8 @@ def main(argv=None) -> int:
             source="colmap", matcher=args.matcher, camera_model=args.camera_model,
             refine_principal_point=args.refine_principal_point,
             max_reproj_error=args.max_reproj_error, refine_iterations=args.refine_iterations,
-            mapper_attempts=args.mapper_attempts, num_threads=args.threads))
+            mapper_attempts=args.mapper_attempts, num_threads=args.threads,
+            domain_size_pooling=args.dsp))
         seconds = time.time() - t0
         load1 = os.getloadavg()[0]
         est = load_cameras(out / "cameras.json")

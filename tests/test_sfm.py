@@ -15,7 +15,7 @@ from gdiff.cameras import cameras_to_json, cameras_to_transforms, load_cameras
 from gdiff.errors import ConfigError, PosesError
 from gdiff.io import write_image
 from gdiff.options import from_config
-from gdiff.sfm import (PosesOptions, _mapper_options, discover_images, extraction_scale,
+from gdiff.sfm import (PosesOptions, _extract, _mapper_options, discover_images, extraction_scale,
                        proximity_pairs, read_cameras_file, read_points_ply, refine_model,
                        run_poses, sequential_pairs, set_from_path, write_points_ply)
 
@@ -133,6 +133,31 @@ def test_refine_model_recovers_focal_and_removes_outliers(registered_tiny, gt_ti
     before = np.asarray(rec.cameras[cam.camera_id].params).copy()
     assert refine_model(rec, 2.0, 0)["removed_observations"] == 0
     assert np.array_equal(np.asarray(rec.cameras[cam.camera_id].params), before)
+
+
+def test_domain_size_pooling_changes_descriptors(synth_tiny_dir, tmp_path):
+    import pycolmap
+
+    names = [f"before/{i:03d}.png" for i in range(3)]
+    desc = {}
+    for dsp in (False, True):
+        db = tmp_path / f"dsp{dsp}.db"
+        _extract(db, Path(synth_tiny_dir), names,
+                 PosesOptions(domain_size_pooling=dsp, num_threads=1), single_camera=True)
+        d = pycolmap.Database.open(str(db))
+        try:
+            img = d.read_all_images()[0]
+            desc[dsp] = (np.asarray(d.read_keypoints(img.image_id))[:, :2],
+                         np.asarray(d.read_descriptors(img.image_id).data))
+        finally:
+            d.close()
+    (k0, d0), (k1, d1) = desc[False], desc[True]
+    assert len(k0) > 50 and len(k1) > 50
+    assert 0.5 < len(k1) / len(k0) < 2.0  # a similar number of features
+    # at the same keypoint location the pooled descriptor differs from the plain one
+    dist = np.linalg.norm(k0[:, None] - k1[None], axis=2)
+    i, j = np.unravel_index(np.argmin(dist), dist.shape)
+    assert dist[i, j] < 0.1 and not np.array_equal(d0[i], d1[j])
 
 
 def test_thresholds_scale_with_extraction_size():

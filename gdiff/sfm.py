@@ -48,6 +48,7 @@ from .cameras import SET_TIME, SETS, Camera, cameras_from_json, cameras_from_tra
     save_cameras
 from .errors import PosesError, SceneError
 from .io import IMAGE_EXTENSIONS, atomic_path, read_json
+from .splat.ply import write_points
 
 log = logging.getLogger("gdiff.sfm")
 
@@ -433,54 +434,6 @@ def _points_of(rec) -> tuple[np.ndarray, np.ndarray]:
 # PLY of sparse points
 
 
-def write_points_ply(path: str | os.PathLike, xyz: np.ndarray, rgb: np.ndarray) -> None:
-    """Write points as binary little-endian PLY: ``x y z`` float32, ``red green blue`` uint8.
-
-    Args:
-        xyz: [N, 3] positions (world units). rgb: [N, 3] colours, uint8 (sRGB-encoded).
-    """
-    xyz = np.asarray(xyz, dtype=np.float32).reshape(-1, 3)
-    rgb = np.asarray(rgb).reshape(-1, 3)
-    if len(rgb) != len(xyz):
-        raise ValueError("xyz and rgb must have the same number of points")
-    rec = np.empty(len(xyz), dtype=[("x", "<f4"), ("y", "<f4"), ("z", "<f4"),
-                                    ("red", "u1"), ("green", "u1"), ("blue", "u1")])
-    rec["x"], rec["y"], rec["z"] = xyz.T
-    rec["red"], rec["green"], rec["blue"] = np.clip(rgb, 0, 255).astype(np.uint8).T
-    header = ("ply\nformat binary_little_endian 1.0\n"
-              f"element vertex {len(xyz)}\n"
-              "property float x\nproperty float y\nproperty float z\n"
-              "property uchar red\nproperty uchar green\nproperty uchar blue\n"
-              "end_header\n")
-    with atomic_path(path) as tmp:
-        with open(tmp, "wb") as f:
-            f.write(header.encode("ascii"))
-            f.write(rec.tobytes())
-
-
-def read_points_ply(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray]:
-    """Read a ``points.ply`` written by :func:`write_points_ply`.
-
-    Returns:
-        ``(xyz float32 [N, 3], rgb uint8 [N, 3])``.
-    """
-    path = Path(path)
-    data = path.read_bytes()
-    end = data.find(b"end_header\n")
-    if not data.startswith(b"ply") or end < 0:
-        raise SceneError(f"{path}: not a PLY file")
-    header = data[:end].decode("ascii").splitlines()
-    if "format binary_little_endian 1.0" not in header:
-        raise SceneError(f"{path}: only binary little-endian PLY is supported")
-    n = next(int(h.split()[2]) for h in header if h.startswith("element vertex"))
-    types = {"float": "<f4", "double": "<f8", "uchar": "u1", "uint8": "u1"}
-    props = [(h.split()[2], types[h.split()[1]]) for h in header if h.startswith("property")]
-    arr = np.frombuffer(data, dtype=props, count=n, offset=end + len(b"end_header\n"))
-    xyz = np.stack([arr["x"], arr["y"], arr["z"]], 1).astype(np.float32)
-    rgb = np.stack([arr["red"], arr["green"], arr["blue"]], 1).astype(np.uint8)
-    return xyz, rgb
-
-
 # --------------------------------------------------------------------------------------------
 # Known poses
 
@@ -668,7 +621,7 @@ def run_poses(scene_dir: str | os.PathLike, out_dir: str | os.PathLike,
             else:
                 result = _run_colmap(root, work, images, sizes, opts)
         cams, rec, summary = result
-        write_points_ply(work / "points.ply", *_points_of(rec))
+        write_points(work / "points.ply", *_points_of(rec))
         model_dir = work / "sparse" / "0"
         model_dir.mkdir(parents=True, exist_ok=True)
         rec.write_binary(str(model_dir))

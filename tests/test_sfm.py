@@ -16,8 +16,9 @@ from gdiff.errors import ConfigError, PosesError
 from gdiff.io import write_image
 from gdiff.options import from_config
 from gdiff.sfm import (PosesOptions, _extract, _mapper_options, discover_images, extraction_scale,
-                       proximity_pairs, read_cameras_file, read_points_ply, refine_model,
-                       run_poses, sequential_pairs, set_from_path, write_points_ply)
+                       proximity_pairs, read_cameras_file, refine_model,
+                       run_poses, sequential_pairs, set_from_path)
+from gdiff.splat.ply import read_points
 
 
 def _linked_scene(src: Path, dst: Path) -> Path:
@@ -81,8 +82,8 @@ def test_register_tiny_writes_model_and_points(registered_tiny):
     import pycolmap
 
     out, summary = registered_tiny
-    xyz, rgb = read_points_ply(out / "points.ply")
-    assert xyz.dtype == np.float32 and rgb.dtype == np.uint8
+    xyz, rgb = read_points(out / "points.ply")
+    assert xyz.shape[1] == 3 and rgb.shape == xyz.shape and 0 <= rgb.min() <= rgb.max() <= 1
     assert len(xyz) == summary["num_points"] > 100
     rec = pycolmap.Reconstruction(str(out / "sparse" / "0"))
     assert rec.num_reg_images() == 26 and rec.num_points3D() == len(xyz)
@@ -190,7 +191,7 @@ def test_known_poses_from_cameras_json(synth_tiny_dir, gt_tiny, tmp_path):
     for c in cams:
         assert np.allclose(c.c2w, gt[c.image].c2w, atol=1e-9)
         assert (c.fx, c.cx) == (gt[c.image].fx, gt[c.image].cx)
-    xyz, _ = read_points_ply(out / "points.ply")
+    xyz, _ = read_points(out / "points.ply")
     assert len(xyz) == summary["num_points"] > 100
     assert summary["mean_reprojection_error"] < 1.0
     # triangulated with the true poses, points lie in the synth room (|x|,|y| < 3.2, 0<=z<=2.8)
@@ -329,18 +330,6 @@ def test_proximity_pairs_prefers_nearby_facing_cameras(gt_tiny):
     # on an orbit, nearest neighbours are the capture-order neighbours
     for i in range(1, len(cams) - 1):
         assert (cams[i - 1].image, cams[i].image) in pairs
-
-
-def test_points_ply_roundtrip(tmp_path):
-    rng = np.random.default_rng(0)
-    xyz = rng.normal(size=(57, 3)).astype(np.float32)
-    rgb = rng.integers(0, 256, size=(57, 3)).astype(np.uint8)
-    write_points_ply(tmp_path / "p.ply", xyz, rgb)
-    data = (tmp_path / "p.ply").read_bytes()
-    assert b"format binary_little_endian 1.0" in data and b"property uchar red" in data
-    assert len(data) == data.index(b"end_header\n") + 11 + 57 * 15
-    x2, c2 = read_points_ply(tmp_path / "p.ply")
-    assert np.array_equal(x2, xyz) and np.array_equal(c2, rgb)
 
 
 def test_umeyama_recovers_similarity():

@@ -280,3 +280,28 @@ def test_render_cli(scene, fitted, tmp_path):
                         "--t", "0.5", "--out", str(tmp_path / "p")]) == 0
     assert sorted(p.name for p in (tmp_path / "p" / "t0p5").iterdir()) == ["00000.png",
                                                                           "00001.png"]
+
+
+def test_time_terms_can_be_switched_off_and_resumed(scene, tmp_path):
+    opts = small_options(coarse_iters=10, fine_iters=10, densify_from=1000, checkpoint_every=10,
+                         time_opacity=False, time_color=False)
+    seen, stop = [], [True]
+
+    class Stop(Exception):
+        pass
+
+    def interrupt(trainer):
+        seen.append(sorted(trainer.model.splats.keys()))
+        if trainer.iteration == 15 and stop:  # only the first run stops
+            stop.pop()
+            raise Stop
+
+    with pytest.raises(Stop):
+        fit_scene(scene.dir, scene.cameras, scene.points, tmp_path, opts, "cpu",
+                  callback=interrupt)
+    res = fit_scene(scene.dir, scene.cameras, scene.points, tmp_path, opts, "cpu",
+                    callback=interrupt)
+    assert res["resumed_from"] == 10 and res["iterations"] == 20
+    assert all("dopacity" not in k and "dsh0" not in k for k in seen)
+    model = load_model(tmp_path / "model.pt", "cpu")  # files load; no change over time
+    assert torch.equal(model.splats["dopacity"], torch.zeros(len(model)))

@@ -15,6 +15,7 @@ name                  shape              meaning
 ``dopacity``          [N]                change of that logit over time: at time t the logit
                                          is ``opacities + (2t - 1) dopacity`` (4D models)
 ``sh0``               [N, 1, 3]          degree-0 SH coefficient per colour channel
+``dsh0``              [N, 1, 3]          its change over time: ``sh0 + (2t - 1) dsh0``
 ``shN``               [N, K-1, 3]        higher-order SH coefficients, K = (degree+1)^2
 ====================  =================  =========================================
 
@@ -39,7 +40,7 @@ from torch import nn
 
 SH_C0 = 0.28209479177387814  # Y_0^0 = 1 / (2 sqrt(pi))
 
-PARAM_NAMES = ("means", "scales", "quats", "opacities", "dopacity", "sh0", "shN")
+PARAM_NAMES = ("means", "scales", "quats", "opacities", "dopacity", "sh0", "dsh0", "shN")
 
 
 def rgb_to_sh0(rgb: torch.Tensor) -> torch.Tensor:
@@ -138,6 +139,7 @@ def init_params(xyz: np.ndarray, rgb: np.ndarray, sh_degree: int = 3,
         "opacities": torch.full((n,), math.log(init_opacity / (1 - init_opacity))),
         "dopacity": torch.zeros(n),
         "sh0": rgb_to_sh0(t(rgb))[:, None, :],
+        "dsh0": torch.zeros(n, 1, 3),
         "shN": torch.zeros(n, k - 1, 3),
     }
 

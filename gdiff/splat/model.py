@@ -11,7 +11,9 @@ API used by later stages::
 :mod:`gdiff.splat.gaussians`); among them ``dopacity`` [N], the per-Gaussian change of the
 opacity logit over time: ``logit(t) = opacities + (2t - 1) dopacity (+ the field's delta)``, so
 a Gaussian can exist at one time only (an added or removed object) from the first iteration
-on, without waiting for the deformation field. A later stage may add its own per-Gaussian entries (first
+on, without waiting for the deformation field; likewise ``dsh0`` [N, 1, 3] changes the
+diffuse colour, ``sh0 + (2t - 1) dsh0`` (lighting: moving shadows are sharper than the
+field's grid). Either entry may be absent (the fit's ``time_opacity`` / ``time_color``). A later stage may add its own per-Gaussian entries (first
 dimension N), which densification carries along and :func:`save_model`/:func:`load_model`
 preserve. ``model.deformation`` is a :class:`~gdiff.splat.deform.Deformation` (or None for a
 static model); its deltas are applied only once ``model.deform_on`` is set (the fine phase).
@@ -62,6 +64,7 @@ class GaussianModel4D(nn.Module):
             "opacities": nn.Parameter(torch.zeros(n)),
             "dopacity": nn.Parameter(torch.zeros(n)),
             "sh0": nn.Parameter(torch.zeros(n, 1, 3)),
+            "dsh0": nn.Parameter(torch.zeros(n, 1, 3)),
             "shN": nn.Parameter(torch.zeros(n, k - 1, 3)),
         })
         if isinstance(deform, dict):
@@ -102,6 +105,7 @@ class GaussianModel4D(nn.Module):
         ref = state_dict["splats.means"]
         # models from before the time-opacity term: no change of opacity over time
         state_dict.setdefault("splats.dopacity", ref.new_zeros(n))
+        state_dict.setdefault("splats.dsh0", ref.new_zeros(n, 1, 3))
         for key, v in state_dict.items():
             if key.startswith("splats."):
                 name = key.split(".", 1)[1]
@@ -128,8 +132,11 @@ class GaussianModel4D(nn.Module):
         opacities = s["opacities"]
         if "dopacity" in s:
             opacities = opacities + (2.0 * t - 1.0) * s["dopacity"]
+        sh0 = s["sh0"]
+        if "dsh0" in s:
+            sh0 = sh0 + (2.0 * t - 1.0) * s["dsh0"]
         out = {"means": s["means"], "scales": s["scales"], "quats": s["quats"],
-               "opacities": opacities, "sh": torch.cat([s["sh0"], s["shN"]], dim=1)}
+               "opacities": opacities, "sh": torch.cat([sh0, s["shN"]], dim=1)}
         if self.deforming and len(self):
             for name, d in self.deformation(s["means"], t).items():
                 if name == "sh" and d.shape[1] < out["sh"].shape[1]:

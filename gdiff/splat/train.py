@@ -102,6 +102,7 @@ class FitOptions:
     lr_quats: float = 1e-3
     lr_opacities: float = 5e-2
     lr_dopacity: float = 5e-2  # per-Gaussian opacity change over time (logit units)
+    lr_dsh0: float = 2.5e-3  # per-Gaussian diffuse colour change over time
     lr_sh0: float = 2.5e-3
     lr_shN: float = 1.25e-4
     lr_grid: float = 1e-2  # HexPlane planes (normalised coordinates), decays over fine phase
@@ -125,6 +126,8 @@ class FitOptions:
     prune_scale2d: float = 0.15  # x image size
     max_gaussians: int = 50000  # growth stops here (step cost is about linear in it)
     # deformation field
+    time_opacity: bool = True  # per-Gaussian opacity change over time (splats "dopacity")
+    time_color: bool = True  # per-Gaussian diffuse colour change over time (splats "dsh0")
     deform: bool = True
     deform_position: bool = True
     deform_scale: bool = True
@@ -305,7 +308,7 @@ class Trainer:
         o, m = self.opts, self.model
         lrs = {"means": o.lr_means * self.extent, "scales": o.lr_scales, "quats": o.lr_quats,
                "opacities": o.lr_opacities, "dopacity": o.lr_dopacity, "sh0": o.lr_sh0,
-               "shN": o.lr_shN}
+               "dsh0": o.lr_dsh0, "shN": o.lr_shN}
         groups = [{"params": [p], "lr": lrs.get(name, o.lr_sh0), "name": name}
                   for name, p in m.splats.items()]
         if m.deformation is not None:
@@ -462,7 +465,8 @@ class Trainer:
         }
 
     def load_state_dict(self, st: dict) -> None:
-        self.model = GaussianModel4D.from_state(st["model_config"], st["model"]).to(self.device)
+        self.model = _drop_time_terms(GaussianModel4D.from_state(st["model_config"], st["model"]),
+                                      self.opts).to(self.device)
         self.optimizer = self._make_optimizer()
         self.optimizer.load_state_dict(st["optimizer"])
         self.stats = DensifyStats(0, self.device)
@@ -474,6 +478,14 @@ class Trainer:
         self.rows = list(st["rows"])
         self.elapsed = float(st["elapsed"])
         self.iteration = int(st["iteration"])
+
+
+def _drop_time_terms(model: GaussianModel4D, opts: FitOptions) -> GaussianModel4D:
+    """Remove the per-Gaussian time terms that the options switch off."""
+    for name, on in (("dopacity", opts.time_opacity), ("dsh0", opts.time_color)):
+        if not on and name in model.splats:
+            del model.splats[name]
+    return model
 
 
 def _params_finite(model: GaussianModel4D) -> bool:
@@ -545,7 +557,8 @@ def fit_scene(scene_dir: str | Path, cameras_json: str | Path, points_ply: str |
     torch.manual_seed(opts.seed)
     model = GaussianModel4D.from_points(xyz, rgb, opts.sh_degree, opts.deform_config(),
                                         opts.init_opacity,
-                                        opts.init_max_scale * extent).to(dev)
+                                        opts.init_max_scale * extent)
+    model = _drop_time_terms(model, opts).to(dev)
     trainer = Trainer(model, views, opts, extent)
     log.info("fit: %d images (%d before, %d after) at %dx%d, %d initial Gaussians, extent %.3f",
              len(views), sum(c.set == "before" for c in cams), sum(c.set == "after" for c in cams),

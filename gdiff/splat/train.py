@@ -84,8 +84,8 @@ class FitOptions:
     """Options of the ``fit`` stage (config section ``fit``)."""
 
     # schedule
-    coarse_iters: int = 500  # static phase on all images (opacity may still change over t)
-    fine_iters: int = 2500  # phase with the deformation field
+    coarse_iters: int = 300  # static phase on all images (opacity, colour may change over t)
+    fine_iters: int = 1200  # phase with the deformation field
     max_side: int = 320  # working resolution: longest image side in px (0 = native size)
     coarse_downscale: int = 2  # the coarse phase renders at 1/k of the working size (1 = off)
     seed: int = 0
@@ -116,9 +116,9 @@ class FitOptions:
     init_opacity: float = 0.1
     init_max_scale: float = 0.05  # largest initial Gaussian scale, x extent
     densify_from: int = 200
-    densify_until: int = 2000
+    densify_until: int = 1000
     densify_every: int = 100
-    opacity_reset_every: int = 1000  # 0 = never
+    opacity_reset_every: int = 600  # 0 = never
     grow_grad2d: float = 0.0002
     grow_scale3d: float = 0.01  # x extent
     prune_opacity: float = 0.005

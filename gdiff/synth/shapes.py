@@ -87,11 +87,10 @@ class Sphere:
 
 
 @dataclass(frozen=True)
-class Cylinder:
-    """Upright capped cylinder of radius r and height h (z in [0, h])."""
+class _Upright:
+    """A solid of revolution about the local z axis: radius r, height h (z in [0, h])."""
     r: float
     h: float
-    kind = "cylinder"
 
     @property
     def lo(self):
@@ -104,6 +103,12 @@ class Cylinder:
     @property
     def footprint(self) -> float:
         return self.r
+
+
+@dataclass(frozen=True)
+class Cylinder(_Upright):
+    """Upright capped cylinder of radius r and height h (z in [0, h])."""
+    kind = "cylinder"
 
     def intersect(self, o, d):
         a = d[:, 0] ** 2 + d[:, 1] ** 2
@@ -131,23 +136,9 @@ class Cylinder:
 
 
 @dataclass(frozen=True)
-class Cone:
+class Cone(_Upright):
     """Upright cone: base disc of radius r at z = 0, apex at (0, 0, h)."""
-    r: float
-    h: float
     kind = "cone"
-
-    @property
-    def lo(self):
-        return np.array([-self.r, -self.r, 0.0])
-
-    @property
-    def hi(self):
-        return np.array([self.r, self.r, self.h])
-
-    @property
-    def footprint(self) -> float:
-        return self.r
 
     def intersect(self, o, d):
         k2 = (self.r / self.h) ** 2

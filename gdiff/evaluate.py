@@ -43,7 +43,8 @@ from .baselines import (MethodNotApplicable, Prediction, as_prediction, idcompar
                         partition_method, pixel_diff_method)
 from .cameras import Camera, load_cameras
 from .errors import ConfigError, SceneError
-from .io import IMAGE_EXTENSIONS, read_image, read_mask, write_csv, write_image, write_mask
+from .io import read_image, read_mask, write_csv, write_image, write_mask
+from .scene import list_images
 from .log import progress
 from .metrics import aggregate, score_view
 
@@ -135,16 +136,14 @@ class EvalView:
         return cam
 
 
-def _by_stem(folder: Path, exts=IMAGE_EXTENSIONS) -> dict[str, Path]:
-    if not folder.is_dir():
-        return {}
+def _by_stem(folder: Path) -> dict[str, Path]:
+    """The images of ``folder`` (:func:`gdiff.scene.list_images`) keyed by file stem."""
     out: dict[str, Path] = {}
-    for p in sorted(folder.iterdir()):
-        if p.is_file() and p.suffix in exts and not p.name.startswith("."):
-            if p.stem in out:
-                raise SceneError(f"{folder}: two files with the stem {p.stem!r} ({out[p.stem].name},"
-                                 f" {p.name}); keep one")
-            out[p.stem] = p
+    for p in list_images(folder):
+        if p.stem in out:
+            raise SceneError(f"{folder}: two files with the stem {p.stem!r} ({out[p.stem].name},"
+                             f" {p.name}); keep one")
+        out[p.stem] = p
     return out
 
 

@@ -32,6 +32,7 @@ from pathlib import Path
 from typing import Any
 
 import cv2
+import numpy as np
 import yaml
 
 from .errors import ConfigError, SceneError
@@ -171,21 +172,15 @@ def read_scene_sheet(path: str | Path) -> dict[str, SceneSpec]:
     return scenes
 
 
-def _sha1(path: Path) -> str:
-    h = hashlib.sha1()
-    with open(path, "rb") as f:
-        for chunk in iter(lambda: f.read(1 << 20), b""):
-            h.update(chunk)
-    return h.hexdigest()
-
-
-def _image_size(path: Path) -> tuple[int, int]:
-    """(width, height) of an image, decoding it fully so corrupt files are caught here."""
-    img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+def _size_and_sha1(path: Path) -> tuple[int, int, str]:
+    """(width, height, sha1) of an image, read once and decoded fully so corrupt files are
+    caught here."""
+    data = path.read_bytes()
+    img = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED)
     if img is None:
         raise SceneError(f"{path}: cannot be decoded as an image (corrupt, truncated or not an "
                          "image); replace or remove the file")
-    return int(img.shape[1]), int(img.shape[0])
+    return int(img.shape[1]), int(img.shape[0]), hashlib.sha1(data).hexdigest()
 
 
 def validate_scene(scene_dir: str | Path) -> dict:
@@ -240,7 +235,7 @@ def validate_scene(scene_dir: str | Path) -> dict:
                              "eval/before and eval/after images")
     size = None
     for rec in images:
-        w, h = _image_size(root / rec["path"])
+        w, h, sha1 = _size_and_sha1(root / rec["path"])
         rec["width"], rec["height"] = w, h
         if size is None:
             size = (w, h, rec["path"])
@@ -248,7 +243,7 @@ def validate_scene(scene_dir: str | Path) -> dict:
             raise SceneError(f"{root / rec['path']}: size {w}x{h} differs from {size[2]} "
                              f"({size[0]}x{size[1]}); all images of a scene must have the same "
                              "size (resize them, or split the scene)")
-        rec["sha1"] = _sha1(root / rec["path"])
+        rec["sha1"] = sha1
     return {"scene": str(root.resolve()), "width": size[0], "height": size[1],
             "images": images, "eval_views": eval_views}
 

@@ -143,26 +143,43 @@ def pixel_diff_method(blur_sigma: float = 2.0, min_threshold: float = 0.05,
 
 
 def idcompare_method(detect: Callable | None = None, render: Renderer | None = None,
-                     **kwargs) -> Callable[["EvalView"], Prediction]:
+                     depth: Renderer | None = None, **kwargs) -> Callable[["EvalView"], Prediction]:
     """Instance-ID comparison of the eval pair, without the partition model.
 
-    Calls ``detect(rgb0, rgb1, depth0=None, depth1=None, **kwargs) -> (mask_t0, mask_t1)``
+    Calls ``detect(rgb0, rgb1, depth0=..., depth1=..., **kwargs) -> (mask_t0, mask_t1)``
     (default: ``gdiff.change.detect_changes_pair``, imported on first use, which also gets the
     eval camera's ``K`` when known; pass ``segment_options=``, ``track_options=``,
     ``options=`` through ``kwargs``) and returns the union of the two masks (the GT marks
     changed objects visible before *or* after).
+
+    ``depth(camera, t) -> z [H, W]`` (optional; camera-frame z in world units, 0 or inf where
+    empty): the eval photos have no depth, so the fitted model's depth at the eval camera at
+    t=0 and t=1 stands in for it (segment boundaries and the compare stage's depth evidence, which
+    ignores a shadow or a highlight that moved). Without it, or for a view without an eval camera,
+    the pair is compared on colour alone.
     """
 
     def method(view: "EvalView") -> Prediction:
         fn, kw = detect, dict(kwargs)
+        cam = None
+        if view.camera is not None:
+            cam = view.camera_at_gt_size()
         if fn is None:
             from .change import detect_changes_pair  # lazy: stage module
 
             fn = detect_changes_pair
-            if view.camera is not None:
-                kw.setdefault("K", view.camera_at_gt_size().K)
         rgb0, rgb1 = _pair(view, render)
-        m0, m1 = fn(rgb0, rgb1, depth0=None, depth1=None, **kw)
+        d0 = d1 = None
+        if cam is not None:
+            h, w = rgb0.shape[:2]
+            if (cam.width, cam.height) != (w, h):  # photos at another size than the GT mask
+                cam = cam.scaled(w / cam.width)
+                cam.width, cam.height = w, h
+            if detect is None:
+                kw.setdefault("K", cam.K)
+            if depth is not None:
+                d0, d1 = (np.asarray(depth(cam, t), np.float32) for t in (0.0, 1.0))
+        m0, m1 = fn(rgb0, rgb1, depth0=d0, depth1=d1, **kw)
         return Prediction(_np(m0).astype(bool) | _np(m1).astype(bool))
 
     method.__name__ = "idcompare"

@@ -69,6 +69,9 @@ class EvalOptions:
     """pixel_diff: Gaussian blur (pixels) of the colour difference before Otsu."""
     pixel_min_threshold: float = 0.05
     """pixel_diff: lowest threshold on the [0, 1] difference (Otsu splits even pure noise)."""
+    idcompare_depth: bool = True
+    """idcompare: give the eval pair the fitted model's depth at the eval camera at t=0 and t=1
+    (photos have no depth); false compares the photos on colour alone."""
     overlays: bool = True
     """Write overlays/NAME.png (image | prediction | GT | TP/FP/FN per method)."""
     overlay_max_side: int = 400
@@ -192,11 +195,13 @@ def find_eval_views(scene_dir: str | Path, cameras_json: str | Path | None = Non
 
 
 def build_methods(options: EvalOptions, pmodel: Any = None, render: Callable | None = None,
-                  detect: Callable | None = None, **idcompare_kwargs) -> dict[str, Callable]:
+                  detect: Callable | None = None, depth: Callable | None = None,
+                  **idcompare_kwargs) -> dict[str, Callable]:
     """The methods named in ``options.methods``, ready for :func:`evaluate_scene`.
 
     ``pmodel``: the trained partition model (needed for ``partition``); ``render(camera, t)``:
-    optional renderer standing in for missing eval images; ``detect``: override of
+    optional renderer standing in for missing eval images; ``depth(camera, t)``: optional depth
+    renderer giving ``idcompare`` the model's depth (``options.idcompare_depth``); ``detect``: override of
     ``gdiff.change.detect_changes_pair`` for ``idcompare``; ``idcompare_kwargs`` (e.g.
     ``segment_options=``) are passed on to it.
     """
@@ -206,7 +211,9 @@ def build_methods(options: EvalOptions, pmodel: Any = None, render: Callable | N
             out[name] = pixel_diff_method(options.pixel_blur_sigma, options.pixel_min_threshold,
                                           render=render)
         elif name == "idcompare":
-            out[name] = idcompare_method(detect=detect, render=render, **idcompare_kwargs)
+            out[name] = idcompare_method(detect=detect, render=render,
+                                         depth=depth if options.idcompare_depth else None,
+                                         **idcompare_kwargs)
         elif name == "partition":
             if pmodel is None:
                 raise ConfigError("evaluate.methods lists 'partition' but no partition model "
@@ -222,13 +229,32 @@ def model_renderer(model: Any) -> Callable[[Camera, float], np.ndarray]:
     def render(camera: Camera, t: float) -> np.ndarray:
         from .splat.render import render as splat_render  # lazy: stage module
 
-        rgb = splat_render(model, [camera], t)["rgb"]
-        if hasattr(rgb, "detach"):
-            rgb = rgb.detach().cpu().numpy()
-        rgb = np.asarray(rgb, dtype=np.float32)
+        with _no_grad():
+            rgb = splat_render(model, [camera], t, render_mode="RGB")["rgb"]
+        rgb = np.asarray(rgb.detach().cpu().numpy(), dtype=np.float32)
         return np.clip(rgb[0] if rgb.ndim == 4 else rgb, 0.0, 1.0)
 
     return render
+
+
+def model_depth(model: Any) -> Callable[[Camera, float], np.ndarray]:
+    """``depth(camera, t) -> z float32 [H, W]`` (camera-frame z, world units) from a fitted 4D
+    model: the expected depth, as the render stage writes it to the EXR ``Z`` channel."""
+
+    def depth(camera: Camera, t: float) -> np.ndarray:
+        from .splat.render import render as splat_render  # lazy: stage module
+
+        with _no_grad():
+            out = splat_render(model, [camera], t, render_mode="ED")
+        return out["depth"].detach().cpu().numpy()[0, ..., 0].astype(np.float32)
+
+    return depth
+
+
+def _no_grad():
+    import torch
+
+    return torch.no_grad()
 
 
 def evaluate_workflow_scene(scene_dir: str | Path, cameras_json: str | Path,
@@ -244,7 +270,7 @@ def evaluate_workflow_scene(scene_dir: str | Path, cameras_json: str | Path,
     pmodel = load_partition_model(partition_model, device)
     seg = from_config(SegmentOptions, segment_options, "segment")
     methods = build_methods(options, pmodel=pmodel, render=model_renderer(pmodel.fit),
-                            segment_options=seg)
+                            depth=model_depth(pmodel.fit), segment_options=seg)
     return evaluate_scene(scene_dir, cameras_json, out_dir, scene_name, methods, options)
 
 

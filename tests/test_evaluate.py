@@ -152,3 +152,37 @@ def test_options_are_checked():
         E.EvalOptions(methods=["pixel_diff", "magic"])
     with pytest.raises(Exception, match="partition model"):
         E.build_methods(E.EvalOptions())
+
+
+def test_idcompare_uses_model_depth_to_ignore_a_moved_shadow(tmp_path):
+    """The eval photos have no depth; with the model's depth at the eval camera a darkened
+    (shadowed) region whose depth did not change is not a change, while the added object, nearer
+    at t=1, is."""
+    root, boxes = _scene(tmp_path)
+    view = E.find_eval_views(root, root / "cameras.json")[1]
+    before = view.read_image(0)
+    after = view.read_image(1).copy()
+    after[0:16, 0:24] *= 0.5  # a shadow cast on the unchanged background
+    write_image(root / "eval" / "after" / "001.png", after)
+    x0, y0, x1, y1 = boxes["001"]
+    calls = []
+
+    def depth(cam, t):
+        calls.append(((cam.width, cam.height), t))
+        z = np.full((cam.height, cam.width), 4.0, np.float32)
+        if t == 1.0:
+            z[y0:y1, x0:x1] = 3.0  # the added object stands in front of the wall
+        return z
+
+    gt = view.read_gt()
+    from gdiff.metrics import score_view
+
+    with_depth = B.idcompare_method(depth=depth)(view)
+    assert sorted(calls) == [((W, H), 0.0), ((W, H), 1.0)]
+    s, _ = score_view(with_depth.mask, gt)
+    assert s["F1"] > 0.9
+    assert not with_depth.mask[0:16, 0:24].any()
+    np.testing.assert_array_less(0, before.sum())  # the view was read, not skipped
+    opts = E.EvalOptions(methods=["idcompare"], idcompare_depth=False)
+    assert E.build_methods(opts, depth=depth)["idcompare"](view) is not None
+    assert len(calls) == 2  # idcompare_depth=False: the depth renderer is not used

@@ -15,9 +15,10 @@ from gdiff.cameras import cameras_to_json, cameras_to_transforms, load_cameras
 from gdiff.errors import ConfigError, PosesError
 from gdiff.io import write_image
 from gdiff.options import from_config
-from gdiff.sfm import (PosesOptions, _extract, _mapper_options, discover_images, extraction_scale,
-                       proximity_pairs, read_cameras_file, refine_model,
-                       run_poses, sequential_pairs, set_from_path)
+from gdiff.sfm import (PosesOptions, discover_images, extraction_scale, proximity_pairs,
+                       read_cameras_file, refine_model, run_poses, sequential_pairs,
+                       set_from_path)
+from gdiff.sfm.colmap import _extract, _mapper_options
 from gdiff.splat.ply import read_points
 
 

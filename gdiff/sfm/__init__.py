@@ -1,0 +1,42 @@
+"""Poses stage: register every image of a scene (before, after, eval) in one frame.
+
+Two sources of poses:
+
+* ``colmap`` — SIFT features, matching and incremental mapping with pycolmap. All images share
+  one pinhole camera when their sizes match. Matching is exhaustive for small image sets; for
+  large ones a vocabulary-free pair list is used: neighbours in capture order inside each set
+  (with wrap-around, for orbits) plus evenly spaced links from every image into every set, so
+  the before, after and eval sets are tied together without a vocabulary tree file.
+  Outlier thresholds are ``max_reproj_error`` pixels of the feature-extraction image (COLMAP's
+  4 px defaults suit megapixel photos; on 320 px images false matches, e.g. on shadow edges
+  that move between before and after, then survive and pull the focal length and rotations).
+  Mapping is retried with further seeds and looser thresholds while images stay
+  unregistered, and the kept model gets a final global refinement: bundle adjustment of all
+  cameras, the shared intrinsics and points under a Cauchy loss, alternated with removal of
+  observations beyond the threshold.
+* ``known`` — ``cameras.json`` (gdiff layout, or the ground-truth layout with an
+  ``intrinsics`` block) or a nerfstudio / instant-ngp ``transforms.json`` in the scene folder.
+  The poses are kept as given and sparse points are triangulated with pycolmap from features
+  matched between the images (pose-proximity pairs for large sets), so later stages always have
+  a point cloud.
+
+Outputs in ``out_dir`` (written in a temporary folder inside ``out_dir`` and moved in at the
+end; ``cameras.json`` last, so its presence means the stage finished):
+
+* ``sparse/0/`` — the COLMAP binary model (cameras, images, points3D),
+* ``points.ply`` — sparse points, binary little-endian ``x y z`` float32 +
+  ``red green blue`` uint8,
+* ``cameras.json`` — see :mod:`gdiff.cameras` (c2w in OpenCV axes, pixel centres at +0.5,
+  which is also COLMAP's convention).
+"""
+
+from .colmap import extraction_scale, refine_model
+from .images import SET_FOLDERS, discover_images, set_from_path
+from .known import load_known_cameras, read_cameras_file
+from .options import PosesOptions
+from .pairs import proximity_pairs, sequential_pairs
+from .run import run_poses
+
+__all__ = ["PosesOptions", "SET_FOLDERS", "discover_images", "extraction_scale",
+           "load_known_cameras", "proximity_pairs", "read_cameras_file", "refine_model",
+           "run_poses", "sequential_pairs", "set_from_path"]

@@ -1,0 +1,309 @@
+"""Registration with COLMAP (pycolmap): SIFT features, matching, incremental mapping retried
+with further seeds and looser thresholds, and the final robust global refinement."""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+from pathlib import Path
+from typing import Iterator
+
+import numpy as np
+
+from ..cameras import SET_TIME, SETS, Camera
+from ..errors import PosesError
+from .images import _check_unregistered, _count
+from .options import PosesOptions
+from .pairs import sequential_pairs
+
+log = logging.getLogger("gdiff.sfm")
+
+
+@contextlib.contextmanager
+def _colmap_logging(verbose: bool) -> Iterator[None]:
+    import pycolmap
+
+    old = pycolmap.logging.minloglevel
+    pycolmap.logging.minloglevel = old if verbose else max(old, 1)
+    try:
+        yield
+    finally:
+        pycolmap.logging.minloglevel = old
+
+
+def _extract(db: Path, scene_dir: Path, names: list[str], opts: PosesOptions,
+             single_camera: bool, camera_params: list[float] | None = None) -> None:
+    import pycolmap
+
+    ro = pycolmap.ImageReaderOptions()
+    ro.camera_model = opts.camera_model
+    if camera_params is not None:
+        ro.camera_params = ",".join(f"{v:.10g}" for v in camera_params)
+    eo = pycolmap.FeatureExtractionOptions()
+    eo.num_threads = opts.num_threads
+    eo.max_image_size = opts.max_image_size
+    eo.sift.max_num_features = opts.max_num_features
+    eo.sift.domain_size_pooling = bool(opts.domain_size_pooling)
+    mode = pycolmap.CameraMode.SINGLE if single_camera else pycolmap.CameraMode.PER_IMAGE
+    pycolmap.extract_features(db, scene_dir, image_names=names, camera_mode=mode,
+                              reader_options=ro, extraction_options=eo,
+                              device=pycolmap.Device.cpu)
+
+
+def extraction_scale(sizes: dict[str, tuple[int, int]], max_image_size: int) -> float:
+    """Full-resolution pixels per feature-extraction pixel (>= 1): images whose longer side
+    exceeds ``max_image_size`` are downscaled for SIFT, so keypoint noise measured in
+    full-resolution pixels grows by this factor. The largest factor over ``sizes``
+    (``name -> (width, height)``) is returned."""
+    longest = max(max(wh) for wh in sizes.values())
+    if max_image_size <= 0 or longest <= max_image_size:
+        return 1.0
+    return longest / float(max_image_size)
+
+
+def _match(db: Path, work: Path, opts: PosesOptions, pairs: list[tuple[str, str]] | None,
+           pixel_scale: float = 1.0) -> None:
+    """Exhaustive matching if ``pairs`` is None, else match exactly ``pairs``; two-view RANSAC
+    threshold ``2 * max_reproj_error`` extraction pixels (``pixel_scale`` full-res px each)."""
+    import pycolmap
+
+    mo = pycolmap.FeatureMatchingOptions()
+    mo.num_threads = opts.num_threads
+    vo = pycolmap.TwoViewGeometryOptions()
+    vo.ransac.random_seed = opts.seed
+    vo.ransac.max_error = 2.0 * opts.max_reproj_error * pixel_scale
+    if pairs is None:
+        pycolmap.match_exhaustive(db, matching_options=mo, verification_options=vo,
+                                  device=pycolmap.Device.cpu)
+    else:
+        pair_file = work / "pairs.txt"
+        pair_file.write_text("".join(f"{a} {b}\n" for a, b in pairs))
+        po = pycolmap.ImportedPairingOptions()
+        po.match_list_path = str(pair_file)
+        pycolmap.match_image_pairs(db, matching_options=mo, pairing_options=po,
+                                   verification_options=vo, device=pycolmap.Device.cpu)
+
+
+def _db_stats(db: Path, min_inliers: int) -> dict:
+    """Images, mean keypoints per image and pairs with >= ``min_inliers`` verified matches."""
+    import pycolmap
+
+    d = pycolmap.Database.open(str(db))
+    try:
+        n = d.num_images()
+        kp = d.num_keypoints() / max(n, 1)
+        _, inliers = d.read_two_view_geometry_num_inliers()
+        good = int(np.sum(np.asarray(inliers) >= min_inliers))
+        return {"images": n, "mean_keypoints": kp, "verified_pairs": good}
+    finally:
+        d.close()
+
+
+def _mapper_options(opts: PosesOptions, n_images: int, pixel_scale: float = 1.0,
+                    seed: int | None = None, relax: float = 1.0):
+    """COLMAP incremental-mapper options; pixel thresholds ``relax * opts.max_reproj_error``
+    (extraction pixels, times ``pixel_scale`` for full-resolution pixels)."""
+    import pycolmap
+
+    mp = pycolmap.IncrementalPipelineOptions()
+    mp.num_threads = opts.num_threads
+    mp.random_seed = opts.seed if seed is None else seed
+    err = relax * opts.max_reproj_error * pixel_scale
+    mp.mapper.filter_max_reproj_error = err
+    mp.mapper.init_max_error = err
+    mp.mapper.abs_pose_max_error = 3.0 * err
+    mp.triangulation.merge_max_reproj_error = err
+    mp.triangulation.complete_max_reproj_error = err
+    mp.min_num_matches = opts.min_num_matches
+    mp.min_model_size = max(2, min(10, n_images // 4))
+    mp.multiple_models = True
+    mp.extract_colors = True
+    mp.ba_refine_principal_point = bool(opts.refine_principal_point)
+    return mp
+
+
+def refine_model(rec, max_error: float, iterations: int, refine_principal_point: bool = False,
+                 num_threads: int = -1) -> dict:
+    """Final global refinement of a reconstruction, in place.
+
+    Each round bundle-adjusts all registered cameras, their (shared) intrinsics and all points
+    with a Cauchy loss of scale ``max_error / 2`` (so residuals of a few pixels from false
+    matches that survived mapping have little pull), then deletes observations whose
+    reprojection error exceeds ``max_error`` or whose points have a triangulation angle
+    < 1.5 deg. The focal length is refined; the principal point only if asked.
+
+    Args:
+        rec: ``pycolmap.Reconstruction`` (modified).
+        max_error: outlier threshold in pixels of the images as stored.
+        iterations: rounds (0 = nothing is done).
+
+    Returns:
+        ``{"rounds", "removed_observations", "reprojection_before", "reprojection_after"}``
+        (mean reprojection errors in pixels).
+    """
+    import pycolmap
+
+    rec.update_point_3d_errors()  # the stored errors may predate edits to the model
+    before = float(rec.compute_mean_reprojection_error())
+    bo = pycolmap.BundleAdjustmentOptions()
+    bo.print_summary = False
+    bo.refine_focal_length = True
+    bo.refine_principal_point = bool(refine_principal_point)
+    bo.ceres.loss_function_type = pycolmap.LossFunctionType.CAUCHY
+    bo.ceres.loss_function_scale = 0.5 * max_error
+    bo.ceres.solver_options.num_threads = num_threads
+    removed = 0
+    for _ in range(iterations):
+        pycolmap.bundle_adjustment(rec, bo)
+        removed += int(pycolmap.ObservationManager(rec).filter_all_points3D(max_error, 1.5))
+    rec.update_point_3d_errors()
+    after = float(rec.compute_mean_reprojection_error())
+    if iterations:
+        log.info("global refinement: %d rounds, %d outlier observations removed, mean "
+                 "reprojection error %.3f -> %.3f px", iterations, removed, before, after)
+    return {"rounds": iterations, "removed_observations": removed,
+            "reprojection_before": before, "reprojection_after": after}
+
+
+def _camera_of(image, rec) -> tuple[int, int, float, float, float, float]:
+    """(width, height, fx, fy, cx, cy) of a pycolmap image's camera."""
+    cam = rec.cameras[image.camera_id]
+    p = np.asarray(cam.params, dtype=np.float64)
+    if cam.model.name == "SIMPLE_PINHOLE":
+        f, cx, cy = p
+        fx = fy = f
+    elif cam.model.name == "PINHOLE":
+        fx, fy, cx, cy = p
+    else:  # pragma: no cover - options restrict the model
+        raise PosesError(f"camera model {cam.model.name} is not a pinhole model")
+    return int(cam.width), int(cam.height), float(fx), float(fy), float(cx), float(cy)
+
+
+def _c2w_of(image) -> np.ndarray:
+    """Camera-to-world 4x4 (OpenCV axes) of a registered pycolmap image."""
+    w2c = np.eye(4)
+    w2c[:3, :4] = image.cam_from_world().matrix()
+    R, t = w2c[:3, :3], w2c[:3, 3]
+    c2w = np.eye(4)
+    c2w[:3, :3] = R.T
+    c2w[:3, 3] = -R.T @ t
+    return c2w
+
+
+def _points_of(rec) -> tuple[np.ndarray, np.ndarray]:
+    ids = sorted(rec.points3D.keys()) if hasattr(rec.points3D, "keys") else []
+    if not ids:
+        return np.zeros((0, 3), np.float32), np.zeros((0, 3), np.uint8)
+    xyz = np.stack([rec.points3D[i].xyz for i in ids]).astype(np.float32)
+    rgb = np.stack([rec.points3D[i].color for i in ids]).astype(np.uint8)
+    return xyz, rgb
+
+
+def _run_colmap(root: Path, work: Path, images, sizes, opts: PosesOptions):
+    import pycolmap
+
+    names = [n for n, _ in images]
+    db = work / "database.db"
+    single = len(set(sizes.values())) == 1
+    if not single:
+        log.info("images differ in size: one camera per image")
+    pycolmap.set_random_seed(opts.seed)
+    scale = extraction_scale(sizes, opts.max_image_size)
+    _extract(db, root, names, opts, single_camera=single)
+    matcher = opts.matcher
+    if matcher == "auto":
+        matcher = "exhaustive" if len(names) <= opts.exhaustive_max_images else "sequential"
+    if matcher == "exhaustive":
+        pairs = None
+        log.info("matching: exhaustive (%d pairs)", len(names) * (len(names) - 1) // 2)
+    else:
+        groups = [[n for n, s in images if s == st] for st in SETS]
+        pairs = sequential_pairs([g for g in groups if g], opts.sequential_overlap,
+                                 opts.sequential_links)
+        log.info("matching: sequential (%d pairs: %d capture-order neighbours + %d links per "
+                 "image and set)", len(pairs), opts.sequential_overlap, opts.sequential_links)
+    _match(db, work, opts, pairs, scale)
+    stats = _db_stats(db, opts.min_num_matches)
+    log.info("features: %.0f keypoints per image; %d image pairs with >= %d verified matches",
+             stats["mean_keypoints"], stats["verified_pairs"], opts.min_num_matches)
+    models, attempts = _map_best(db, root, work, opts, len(names), scale)
+    if not models or models[0].num_reg_images() < 2:
+        raise PosesError(
+            f"{root}: COLMAP could not register the images ({stats['verified_pairs']} verified "
+            f"image pairs, {stats['mean_keypoints']:.0f} features per image on average, "
+            f"{len(names)} images). Causes: too little overlap between the photos, untextured "
+            "or repetitive surfaces, blur or very small images. Fixes: take more photos with "
+            "large overlap (each part of the scene seen from several nearby views), add "
+            "texture, use sharper/larger images, or give known poses (cameras.json or "
+            "transforms.json in the scene folder, poses.source: known).")
+    rec = models[0]
+    if len(models) > 1:
+        in_largest = {rec.images[i].name for i in rec.reg_image_ids()}
+        sizes_m = [m.num_reg_images() for m in models]
+        log.warning("COLMAP made %d models of %s images; keeping the largest", len(models),
+                    sizes_m)
+        for k, m in enumerate(models[1:], 1):
+            only = sorted({m.images[i].name for i in m.reg_image_ids()} - in_largest)
+            if only:
+                log.warning("model %d holds images missing from the largest: %s", k,
+                            ", ".join(only))
+    by_name = {rec.images[i].name: rec.images[i] for i in rec.reg_image_ids()}
+    dropped = _check_unregistered(images, set(by_name), opts.max_unregistered_fraction,
+                                  f"COLMAP registration of {root}")
+    refine = refine_model(rec, opts.max_reproj_error * scale, opts.refine_iterations,
+                          opts.refine_principal_point, opts.num_threads)
+    cams = []
+    for n, st in images:
+        if n in dropped:
+            continue
+        im = by_name[n]
+        w, h, fx, fy, cx, cy = _camera_of(im, rec)
+        cams.append(Camera(w, h, fx, fy, cx, cy, _c2w_of(im), image=n, set=st,
+                           time=SET_TIME[st]))
+    summary = {"source": "colmap", "matcher": matcher, "images": _count(images),
+               "registered": _count(images, set(by_name)), "dropped": dropped,
+               "num_models": len(models), "mapper_attempts": attempts,
+               "num_points": int(rec.num_points3D()),
+               "mean_reprojection_error": float(rec.compute_mean_reprojection_error()),
+               "refinement": refine}
+    return cams, rec, summary
+
+
+def _model_key(rec) -> tuple[int, float]:
+    """Ranking of candidate models: more registered images first, then lower mean
+    reprojection error."""
+    return rec.num_reg_images(), -float(rec.compute_mean_reprojection_error())
+
+
+def _map_best(db: Path, root: Path, work: Path, opts: PosesOptions, n_images: int,
+              scale: float) -> tuple[list, int]:
+    """Incremental mapping, repeated with the next seed and a looser threshold (run k:
+    ``seed + k``, ``(k + 1) * max_reproj_error``; up to ``opts.mapper_attempts`` runs) while
+    the best model leaves images unregistered.
+
+    Returns:
+        ``(models, attempts)``: the models of the best run, largest first, and the number of
+        runs made.
+    """
+    import pycolmap
+
+    best: list = []
+    attempts = 0
+    for k in range(opts.mapper_attempts):
+        seed = opts.seed + k
+        pycolmap.set_random_seed(seed)
+        recs = pycolmap.incremental_mapping(
+            db, root, work / f"mapper{k}",
+            options=_mapper_options(opts, n_images, scale, seed=seed, relax=k + 1.0))
+        attempts += 1
+        models = sorted(recs.values(), key=_model_key, reverse=True)
+        if models and (not best or _model_key(models[0]) > _model_key(best[0])):
+            best = models
+        n_best = best[0].num_reg_images() if best else 0
+        if n_best == n_images:
+            break
+        if k + 1 < opts.mapper_attempts:
+            log.info("mapping: best model so far registers %d of %d images; run %d with "
+                     "seed %d and a %.1f px threshold", n_best, n_images, k + 2, seed + 1,
+                     (k + 2) * opts.max_reproj_error * scale)
+    return best, attempts

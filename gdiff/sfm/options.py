@@ -1,0 +1,88 @@
+"""Options of the poses stage (config section ``poses``)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+
+@dataclass
+class PosesOptions:
+    """Options of the poses stage (config section ``poses``).
+
+    Attributes:
+        source: ``auto`` (known poses if the scene has cameras.json / transforms.json, else
+            COLMAP), ``colmap`` or ``known``.
+        matcher: ``auto`` (exhaustive up to ``exhaustive_max_images`` images, else
+            ``sequential``), ``exhaustive`` or ``sequential`` (capture-order neighbours within
+            each set + evenly spaced links between all images; no vocabulary tree needed).
+        exhaustive_max_images: image count up to which ``auto`` matches all pairs.
+        sequential_overlap: capture-order neighbours matched on each side (``sequential``).
+        sequential_links: evenly spaced images of every set each image is also matched with.
+        camera_model: ``PINHOLE`` (fx, fy, cx, cy) or ``SIMPLE_PINHOLE`` (one focal length).
+        max_image_size: longer image side for feature extraction (larger images are
+            downscaled for SIFT; poses and intrinsics stay in full-resolution pixels).
+        max_num_features: SIFT features per image.
+        domain_size_pooling: DSP-SIFT descriptors (pooled over several patch sizes): more
+            distinctive under lighting change and on small images, fewer false matches; about
+            5x slower feature extraction (matching often gets faster).
+        min_num_matches: verified matches needed for an image pair to count in mapping.
+        max_reproj_error: reprojection error (pixels of the feature-extraction image) above
+            which an observation is an outlier: used by the mapper (triangulation, filtering;
+            camera registration allows 3x, two-view RANSAC 2x) and by the final refinement.
+            COLMAP's default of 4 px is meant for megapixel photos; on small images it lets
+            false matches (e.g. on moving shadow edges) bias the focal length and rotations.
+        refine_iterations: rounds of the final global refinement (bundle adjustment of all
+            cameras, shared intrinsics and points with a Cauchy loss, then removal of
+            observations beyond ``max_reproj_error``); 0 keeps the mapper's model as is.
+        mapper_attempts: incremental mapping runs tried while the best model so far leaves
+            images unregistered. Run k (from 0) uses seed ``seed + k`` and mapper thresholds
+            ``(k + 1) * max_reproj_error``: a strict threshold keeps mapping accurate, a looser
+            one can register weakly connected images (the final refinement then removes the
+            outliers at ``max_reproj_error``). The model with the most registered images, then
+            the lowest reprojection error, is kept.
+        refine_principal_point: let bundle adjustment move the principal point (off = keep it
+            at the image centre, COLMAP's default).
+        max_unregistered_fraction: if a set (before, after, eval_before, eval_after) loses more
+            than this fraction of its images, the stage fails listing them; otherwise they are
+            dropped with a warning.
+        num_threads: CPU threads for COLMAP (-1 = all).
+        seed: random seed of COLMAP's RANSAC and mapper (for repeatable runs).
+        colmap_log: let COLMAP write its own INFO log lines to stderr.
+    """
+
+    source: str = "auto"
+    matcher: str = "auto"
+    exhaustive_max_images: int = 150
+    sequential_overlap: int = 8
+    sequential_links: int = 6
+    camera_model: str = "PINHOLE"
+    max_image_size: int = 1600
+    max_num_features: int = 8192
+    domain_size_pooling: bool = False
+    min_num_matches: int = 15
+    max_reproj_error: float = 2.0
+    refine_iterations: int = 3
+    mapper_attempts: int = 3
+    refine_principal_point: bool = False
+    max_unregistered_fraction: float = 0.2
+    num_threads: int = -1
+    seed: int = 0
+    colmap_log: bool = False
+
+    def __post_init__(self):
+        if self.source not in ("auto", "colmap", "known"):
+            raise ValueError(f"source must be auto, colmap or known, not {self.source!r}")
+        if self.matcher not in ("auto", "exhaustive", "sequential"):
+            raise ValueError(f"matcher must be auto, exhaustive or sequential, not "
+                             f"{self.matcher!r}")
+        if self.camera_model not in ("PINHOLE", "SIMPLE_PINHOLE"):
+            raise ValueError(f"camera_model must be PINHOLE or SIMPLE_PINHOLE (later stages "
+                             f"render undistorted pinhole cameras), not {self.camera_model!r}")
+        if not 0.0 <= self.max_unregistered_fraction <= 1.0:
+            raise ValueError("max_unregistered_fraction must lie in [0, 1]")
+        if self.sequential_overlap < 1 or self.sequential_links < 0:
+            raise ValueError("sequential_overlap must be >= 1 and sequential_links >= 0")
+        if not self.max_reproj_error > 0:
+            raise ValueError("max_reproj_error must be > 0 (pixels)")
+        if self.refine_iterations < 0 or self.mapper_attempts < 1:
+            raise ValueError("refine_iterations must be >= 0 and mapper_attempts >= 1")

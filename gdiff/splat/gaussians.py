@@ -17,6 +17,9 @@ name                  shape              meaning
 ``sh0``               [N, 1, 3]          degree-0 SH coefficient per colour channel
 ``dsh0``              [N, 1, 3]          its change over time: ``sh0 + (2t - 1) dsh0``
 ``shN``               [N, K-1, 3]        higher-order SH coefficients, K = (degree+1)^2
+``dshN``              [N, K-1, 3]        their change over time: ``shN + (2t - 1) dshN``
+                                         (view-dependent light: highlights that move
+                                         with the lighting)
 ====================  =================  =========================================
 
 Colours are fitted to sRGB-encoded image values; rendered colour = SH(view dir) + 0.5 (3DGS).
@@ -40,7 +43,8 @@ from torch import nn
 
 SH_C0 = 0.28209479177387814  # Y_0^0 = 1 / (2 sqrt(pi))
 
-PARAM_NAMES = ("means", "scales", "quats", "opacities", "dopacity", "sh0", "dsh0", "shN")
+PARAM_NAMES = ("means", "scales", "quats", "opacities", "dopacity", "sh0", "dsh0", "shN", "dshN")
+TIME_TERMS = ("dopacity", "dsh0", "dshN")  # per-Gaussian changes over time (see above)
 
 
 def rgb_to_sh0(rgb: torch.Tensor) -> torch.Tensor:
@@ -141,6 +145,7 @@ def init_params(xyz: np.ndarray, rgb: np.ndarray, sh_degree: int = 3,
         "sh0": rgb_to_sh0(t(rgb))[:, None, :],
         "dsh0": torch.zeros(n, 1, 3),
         "shN": torch.zeros(n, k - 1, 3),
+        "dshN": torch.zeros(n, k - 1, 3),
     }
 
 
@@ -278,20 +283,37 @@ def reset_opacity(params: nn.ParameterDict, optimizer: torch.optim.Optimizer | N
 
 
 class DensifyStats:
-    """Running view-space gradient statistics per Gaussian between two refinements.
+    """Per-Gaussian statistics of the rendered views.
 
-    ``grad2d`` [N]: sum of |d loss / d mean2d| in NDC units (pixels x size/2), ``count`` [N]:
-    how many rendered views saw the Gaussian, ``max_radius`` [N]: largest screen radius seen,
-    as a fraction of max(width, height).
+    Between two refinements: ``grad2d`` [N], sum of |d loss / d mean2d| in NDC units (pixels x
+    size/2), ``count`` [N], how many rendered views saw the Gaussian, ``max_radius`` [N],
+    largest screen radius seen, as a fraction of max(width, height).
+
+    Over the whole fit: ``seen`` [N, T], in how many training views of each of the T times the
+    Gaussian projected into the image (its 3-sigma box overlaps it, whatever its opacity; see
+    :meth:`observe`). A clone or split child inherits its parent's row; refinements keep it.
     """
 
-    def __init__(self, n: int, device: torch.device | str | None = None):
+    def __init__(self, n: int, device: torch.device | str | None = None, n_times: int = 2):
         self.grad2d = torch.zeros(n, device=device)
         self.count = torch.zeros(n, device=device)
         self.max_radius = torch.zeros(n, device=device)
+        self.seen = torch.zeros(n, n_times, device=device)
 
     def __len__(self) -> int:
         return int(self.grad2d.shape[0])
+
+    @torch.no_grad()
+    def observe(self, radii: torch.Tensor, time_index: int) -> None:
+        """Count the views of time ``time_index`` that see each Gaussian: radii [C, N] or
+        [C, N, 2] (pixels, 0 = outside the image or behind the camera)."""
+        if radii.dim() == 3:
+            radii = radii.max(dim=-1).values
+        self.seen[:, time_index] += (radii > 0).sum(0).to(self.seen.dtype)
+
+    def seen_at_all_times(self, min_views: int) -> torch.Tensor:
+        """[N] bool: seen in at least ``min_views`` views of every time."""
+        return (self.seen >= min_views).all(dim=1)
 
     @torch.no_grad()
     def update(self, means2d_grad: torch.Tensor, radii: torch.Tensor, width: int,
@@ -319,25 +341,35 @@ class DensifyStats:
         torch.maximum(self.max_radius, r, out=self.max_radius)
 
     def keep(self, mask: torch.Tensor) -> None:
-        self.grad2d, self.count, self.max_radius = (
-            self.grad2d[mask], self.count[mask], self.max_radius[mask])
+        self.grad2d, self.count, self.max_radius, self.seen = (
+            self.grad2d[mask], self.count[mask], self.max_radius[mask], self.seen[mask])
 
-    def append(self, m: int) -> None:
+    def append(self, m: int, seen: torch.Tensor | None = None) -> None:
+        """Append ``m`` Gaussians with zero window statistics and ``seen`` [m, T] (the
+        parents' rows; zeros when None)."""
         z = self.grad2d.new_zeros(m)
         self.grad2d = torch.cat([self.grad2d, z])
         self.count = torch.cat([self.count, z])
         self.max_radius = torch.cat([self.max_radius, z])
+        if seen is None:
+            seen = self.seen.new_zeros(m, self.seen.shape[1])
+        self.seen = torch.cat([self.seen, seen.to(self.seen)])
 
     def reset(self) -> None:
+        """Clear the window statistics (``seen`` is kept)."""
         self.grad2d.zero_()
         self.count.zero_()
         self.max_radius.zero_()
 
     def state_dict(self) -> dict:
-        return {"grad2d": self.grad2d, "count": self.count, "max_radius": self.max_radius}
+        return {"grad2d": self.grad2d, "count": self.count, "max_radius": self.max_radius,
+                "seen": self.seen}
 
     def load_state_dict(self, d: dict) -> None:
         self.grad2d, self.count, self.max_radius = d["grad2d"], d["count"], d["max_radius"]
+        # checkpoints without view counts: every Gaussian counts as seen at every time
+        self.seen = d.get("seen", torch.full((len(self.grad2d), self.seen.shape[1]), 1e9,
+                                             device=self.grad2d.device))
 
 
 @dataclass
@@ -363,7 +395,7 @@ def refine(params: nn.ParameterDict, optimizer: torch.optim.Optimizer | None,
     ``effective()`` returns (opacity [N], max scale [N]) used for pruning, evaluated after
     growth; a 4D model passes the largest values over the times it is trained on, so a
     Gaussian visible at any time is kept. Default: from the raw parameters.
-    Resets ``stats``. Returns counts {"cloned", "split", "pruned", "n"}.
+    Resets the window statistics of ``stats`` (``seen`` follows the Gaussians). Returns counts {"cloned", "split", "pruned", "n"}.
     """
     n0 = len(params["means"])
     grads = stats.grad2d / stats.count.clamp_min(1)
@@ -381,12 +413,13 @@ def refine(params: nn.ParameterDict, optimizer: torch.optim.Optimizer | None,
     n_clone, n_split = int(clone_mask.sum()), int(split_mask.sum())
     if n_clone:
         duplicate(params, optimizer, clone_mask)
-        stats.append(n_clone)
+        stats.append(n_clone, stats.seen[clone_mask])
         split_mask = torch.cat([split_mask, split_mask.new_zeros(n_clone)])
     if n_split:
+        children_seen = stats.seen[split_mask].repeat(2, 1)  # split() appends 2 x the parents
         split(params, optimizer, split_mask)
         stats.keep(~split_mask)
-        stats.append(2 * n_split)
+        stats.append(2 * n_split, children_seen)
     if effective is None:
         opa = torch.sigmoid(params["opacities"])
         size = params["scales"].exp().max(dim=-1).values
@@ -399,6 +432,7 @@ def refine(params: nn.ParameterDict, optimizer: torch.optim.Optimizer | None,
     n_prune = int(prune.sum())
     if n_prune:
         keep_gaussians(params, optimizer, ~prune)
+        stats.seen = stats.seen[~prune]
     stats.grad2d = torch.zeros(len(params["means"]), device=stats.grad2d.device)
     stats.count = torch.zeros_like(stats.grad2d)
     stats.max_radius = torch.zeros_like(stats.grad2d)

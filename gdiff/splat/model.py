@@ -13,7 +13,12 @@ opacity logit over time: ``logit(t) = opacities + (2t - 1) dopacity (+ the field
 a Gaussian can exist at one time only (an added or removed object) from the first iteration
 on, without waiting for the deformation field; likewise ``dsh0`` [N, 1, 3] changes the
 diffuse colour, ``sh0 + (2t - 1) dsh0`` (lighting: moving shadows are sharper than the
-field's grid). Either entry may be absent (the fit's ``time_opacity`` / ``time_color``). A later stage may add its own per-Gaussian entries (first
+field's grid) and ``dshN`` [N, K-1, 3] the view-dependent SH, ``shN + (2t - 1) dshN``
+(highlights on glossy surfaces move with the light). Any of them may be absent (the fit's
+``time_opacity`` / ``time_color`` / ``time_specular``; files from before ``dshN`` load with
+no view-dependent change). While fitting, ``time_gate`` [N] (see :meth:`raw_at_time`)
+switches these terms off for Gaussians not yet observed at both times; the saved model has
+the gate folded in (:meth:`apply_time_gate`). A later stage may add its own per-Gaussian entries (first
 dimension N), which densification carries along and :func:`save_model`/:func:`load_model`
 preserve. ``model.deformation`` is a :class:`~gdiff.splat.deform.Deformation` (or None for a
 static model); its deltas are applied only once ``model.deform_on`` is set (the fine phase).
@@ -35,7 +40,7 @@ from torch import nn
 from ..errors import ModelFileError
 from ..io import atomic_path
 from .deform import DeformConfig, Deformation
-from .gaussians import Gaussians, init_params, num_sh_coeffs
+from .gaussians import TIME_TERMS, Gaussians, init_params, num_sh_coeffs
 
 FORMAT = "gdiff.GaussianModel4D"
 VERSION = 1
@@ -66,6 +71,7 @@ class GaussianModel4D(nn.Module):
             "sh0": nn.Parameter(torch.zeros(n, 1, 3)),
             "dsh0": nn.Parameter(torch.zeros(n, 1, 3)),
             "shN": nn.Parameter(torch.zeros(n, k - 1, 3)),
+            "dshN": nn.Parameter(torch.zeros(n, k - 1, 3)),
         })
         if isinstance(deform, dict):
             deform = DeformConfig(**deform)
@@ -106,6 +112,7 @@ class GaussianModel4D(nn.Module):
         # models from before the time-opacity term: no change of opacity over time
         state_dict.setdefault("splats.dopacity", ref.new_zeros(n))
         state_dict.setdefault("splats.dsh0", ref.new_zeros(n, 1, 3))
+        state_dict.setdefault("splats.dshN", torch.zeros_like(state_dict["splats.shN"]))
         for key, v in state_dict.items():
             if key.startswith("splats."):
                 name = key.split(".", 1)[1]
@@ -125,18 +132,28 @@ class GaussianModel4D(nn.Module):
         return self.deformation is not None and bool(self.deform_on)
 
     # ---------------------------------------------------------------- evaluation
-    def raw_at_time(self, t) -> dict[str, torch.Tensor]:
+    def raw_at_time(self, t, time_gate: torch.Tensor | None = None) -> dict[str, torch.Tensor]:
         """Raw (unactivated) parameters at time t (float or 0-d tensor in [0, 1]):
-        means, scales (log), quats (unnormalised), opacities (logit), sh [N, K, 3]."""
+        means, scales (log), quats (unnormalised), opacities (logit), sh [N, K, 3].
+
+        ``time_gate`` [N] (0/1, optional) multiplies the per-Gaussian time terms (``dopacity``,
+        ``dsh0``, ``dshN``): a Gaussian with gate 0 has the same opacity and colour at every
+        time (up to the deformation field).
+        """
         s = self.splats
-        opacities = s["opacities"]
-        if "dopacity" in s:
-            opacities = opacities + (2.0 * t - 1.0) * s["dopacity"]
-        sh0 = s["sh0"]
-        if "dsh0" in s:
-            sh0 = sh0 + (2.0 * t - 1.0) * s["dsh0"]
+        w = 2.0 * t - 1.0
+        if time_gate is not None:
+            w = w * time_gate.to(s["means"])
+
+        def change(name: str, base: torch.Tensor) -> torch.Tensor:
+            if name not in s:
+                return base
+            d = s[name]
+            return base + (w.view((-1,) + (1,) * (d.dim() - 1)) if torch.is_tensor(w) else w) * d
+
         out = {"means": s["means"], "scales": s["scales"], "quats": s["quats"],
-               "opacities": opacities, "sh": torch.cat([sh0, s["shN"]], dim=1)}
+               "opacities": change("dopacity", s["opacities"]),
+               "sh": torch.cat([change("dsh0", s["sh0"]), change("dshN", s["shN"])], dim=1)}
         if self.deforming and len(self):
             for name, d in self.deformation(s["means"], t).items():
                 if name == "sh" and d.shape[1] < out["sh"].shape[1]:
@@ -146,9 +163,19 @@ class GaussianModel4D(nn.Module):
                     out[name] = out[name] + d
         return out
 
-    def at_time(self, t) -> Gaussians:
-        """Deformed, activated Gaussians at time t (see :class:`Gaussians`); differentiable."""
-        r = self.raw_at_time(t)
+    @torch.no_grad()
+    def apply_time_gate(self, time_gate: torch.Tensor) -> None:
+        """Fold a gate into the parameters: the time terms of Gaussians with gate 0 become 0,
+        so ``at_time(t)`` equals ``at_time(t, time_gate)`` afterwards."""
+        for name in TIME_TERMS:
+            if name in self.splats:
+                d = self.splats[name]
+                d.mul_(time_gate.to(d).view((-1,) + (1,) * (d.dim() - 1)))
+
+    def at_time(self, t, time_gate: torch.Tensor | None = None) -> Gaussians:
+        """Deformed, activated Gaussians at time t (see :class:`Gaussians`); differentiable.
+        ``time_gate``: see :meth:`raw_at_time`."""
+        r = self.raw_at_time(t, time_gate)
         q = r["quats"]
         return Gaussians(means=r["means"],
                          quats=q / q.norm(dim=-1, keepdim=True).clamp_min(1e-12),

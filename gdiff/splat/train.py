@@ -21,6 +21,20 @@ Training (after Wu et al., CVPR 2024, "4D Gaussian Splatting"):
 3. Fine phase (``fine_iters``): the HexPlane deformation field is switched on (its box set to
    the Gaussians' extent) and trained with the Gaussians; each image is rendered at its time.
 
+Per-Gaussian changes over time (``dopacity``, ``dsh0``, ``dshN``; see
+:mod:`gdiff.splat.model`) are learnt only for Gaussians seen (projected into the image) in at
+least ``time_min_views`` training views of *each* time; the others keep one state for both
+times. Before and after images are often taken from different places (other heights, other
+sides), and a part of the scene seen at one time only carries no evidence of how it looks at
+the other: with the change terms free, every update from the time that sees it moves the
+shared value and the change term in opposite directions (for both parameters Adam takes
+steps of the same size), so the other time keeps its initial (after an opacity reset:
+transparent) state and novel views at that time show holes. Gating the terms lets the shared
+parameters take the whole update instead ("no change without evidence"); two views, the
+fewest that locate a change in 3D, are the default. The counts (``DensifyStats.seen``) are
+kept for the whole fit and inherited by clones and split children; the saved model has the
+gate folded in.
+
 Each iteration renders one training image at the working resolution (``max_side``); every
 image is used once per epoch, before and after images alternating (random order within a
 time), so both states get the same share of the updates at every stage. Loss = L1 + ``ssim_lambda`` (1 - SSIM) + grid regularisers
@@ -105,6 +119,7 @@ class FitOptions:
     lr_dsh0: float = 2.5e-3  # per-Gaussian diffuse colour change over time
     lr_sh0: float = 2.5e-3
     lr_shN: float = 1.25e-4
+    lr_dshN: float = 1.25e-4  # per-Gaussian view-dependent colour change over time
     lr_grid: float = 1e-2  # HexPlane planes (normalised coordinates), decays over fine phase
     lr_grid_final: float = 1e-3
     lr_deform: float = 1e-3  # deformation MLP (x scene extent), decays over fine phase
@@ -128,6 +143,9 @@ class FitOptions:
     # deformation field
     time_opacity: bool = True  # per-Gaussian opacity change over time (splats "dopacity")
     time_color: bool = True  # per-Gaussian diffuse colour change over time (splats "dsh0")
+    time_specular: bool = True  # per-Gaussian view-dependent colour change (splats "dshN")
+    time_min_views: int = 2  # learn a Gaussian's own change over time only once it was seen
+    # in this many training views of each time (0 = always; see the module docstring)
     deform: bool = True
     deform_position: bool = True
     deform_scale: bool = True
@@ -153,7 +171,7 @@ class FitOptions:
             raise ValueError(f"coarse_downscale must be >= 1, got {self.coarse_downscale}")
         for name in ("coarse_iters", "fine_iters", "max_side", "densify_every", "log_every",
                      "checkpoint_every", "sh_degree_interval", "max_gaussians",
-                     "opacity_reset_every"):
+                     "opacity_reset_every", "time_min_views"):
             if getattr(self, name) < 0:
                 raise ValueError(f"{name} must be >= 0, got {getattr(self, name)}")
         if self.coarse_iters + self.fine_iters < 1:
@@ -294,21 +312,21 @@ class Trainer:
         self.extent = float(extent)
         self.device = model.device
         self.iteration = 0  # next iteration to run
+        self.times = sorted({v.time for v in views})
         self.optimizer = self._make_optimizer()
-        self.stats = DensifyStats(len(model), self.device)
+        self.stats = DensifyStats(len(model), self.device, len(self.times))
         self.gen = torch.Generator().manual_seed(opts.seed)
         self.order = self._epoch_order()
         self.cursor = 0
         self.rows: list[dict] = []
         self.elapsed = 0.0
-        self.times = sorted({v.time for v in views})
 
     # ---------------------------------------------------------------- optimiser
     def _make_optimizer(self) -> torch.optim.Optimizer:
         o, m = self.opts, self.model
         lrs = {"means": o.lr_means * self.extent, "scales": o.lr_scales, "quats": o.lr_quats,
                "opacities": o.lr_opacities, "dopacity": o.lr_dopacity, "sh0": o.lr_sh0,
-               "dsh0": o.lr_dsh0, "shN": o.lr_shN}
+               "dsh0": o.lr_dsh0, "shN": o.lr_shN, "dshN": o.lr_dshN}
         groups = [{"params": [p], "lr": lrs.get(name, o.lr_sh0), "name": name}
                   for name, p in m.splats.items()]
         if m.deformation is not None:
@@ -384,12 +402,20 @@ class Trainer:
     def effective_opacity_scale(self) -> tuple[torch.Tensor, torch.Tensor]:
         """Largest opacity [N] and largest axis scale [N] over the training times."""
         opa = scale = None
+        gate = self.time_gate()
         for t in self.times:
-            g = self.model.at_time(t)
+            g = self.model.at_time(t, gate)
             o, s = g.opacities, g.scales.max(dim=-1).values
             opa = o if opa is None else torch.maximum(opa, o)
             scale = s if scale is None else torch.maximum(scale, s)
         return opa, scale
+
+    def time_gate(self) -> torch.Tensor | None:
+        """[N] float, 1 for the Gaussians whose own change over time is learnt: those seen in
+        at least ``time_min_views`` training views of every time (None: no gate)."""
+        if self.opts.time_min_views <= 0 or len(self.times) < 2:
+            return None
+        return self.stats.seen_at_all_times(self.opts.time_min_views).float()
 
     # ---------------------------------------------------------------- one iteration
     def step(self) -> dict:
@@ -403,10 +429,11 @@ class Trainer:
         self._set_lrs(it)
         view = self._next_view()
         image, K = view.at_scale(it < o.coarse_iters)
-        g = m.at_time(view.time)
+        g = m.at_time(view.time, self.time_gate())
         h, w = image.shape[:2]
         colors, _, meta = rasterize_gaussians(g, view.viewmat, K, w, h, self._background(),
                                               "RGB", o.backend)
+        self.stats.observe(meta["radii"], self.times.index(view.time))
         means2d = meta["means2d"]
         densify_now = o.densify_from <= it < o.densify_until and o.densify_every > 0
         if densify_now and means2d.requires_grad:
@@ -482,7 +509,8 @@ class Trainer:
 
 def _drop_time_terms(model: GaussianModel4D, opts: FitOptions) -> GaussianModel4D:
     """Remove the per-Gaussian time terms that the options switch off."""
-    for name, on in (("dopacity", opts.time_opacity), ("dsh0", opts.time_color)):
+    for name, on in (("dopacity", opts.time_opacity), ("dsh0", opts.time_color),
+                     ("dshN", opts.time_specular)):
         if not on and name in model.splats:
             del model.splats[name]
     return model
@@ -630,6 +658,11 @@ def fit_scene(scene_dir: str | Path, cameras_json: str | Path, points_ply: str |
     if not _params_finite(model):
         raise TrainingError(f"fit ended with non-finite parameters at iteration {total}; "
                             f"the last good checkpoint is {ckpt} (iteration {last_ckpt})")
+    gate = trainer.time_gate()
+    if gate is not None:
+        model.apply_time_gate(gate)  # the saved model renders as trained, without the gate
+        log.info("time terms kept for %d of %d Gaussians (seen in >= %d views of each time)",
+                 int(gate.sum()), len(gate), opts.time_min_views)
     model.eval()
     seconds = time.time() - t_start
     quality = evaluate_views(model, views, opts.backend)

@@ -44,9 +44,10 @@ UNCHANGED, CHANGED = 0, 1
 class PartitionOptions:
     """Options of the ``partition`` stage (config section ``partition``)."""
 
-    iterations: int = 2000            # fine-tuning steps (one training image per step)
+    iterations: int = 600             # fine-tuning steps (one training image per step)
     encoding_dim: int = 16            # length of the per-Gaussian classification encoding
     lambda_2d: float = 1.0            # weight of the BCE between rendered and target masks
+    balance_classes: bool = True      # BCE = mean over changed + mean over unchanged pixels, / 2
     lambda_3d: float = 2.0            # weight of the kNN KL regulariser L3d
     knn_k: int = 5                    # neighbours per sampled Gaussian in L3d
     knn_samples: int = 1000           # Gaussians sampled per L3d evaluation (m)
@@ -54,7 +55,9 @@ class PartitionOptions:
     knn_refresh: int = 200            # rebuild the KD-tree of centres every this many L3d calls
     lr_encoding: float = 0.02         # Adam learning rate of the encodings
     lr_head: float = 0.005            # Adam learning rate of the 1x1 convolution
-    geometry_lr_scale: float = 1.0    # x the fit stage's final learning rates (0 = freeze)
+    geometry_lr_scale: float = 0.0    # x the fit's final learning rates; 0 = frozen geometry
+                                      # (blend weights cached per key view: fast), > 0 = joint
+                                      # fine-tuning with L1 + L_TV (renders every step)
     lambda_tv: float | None = None    # weight of the HexPlane TV; None = the fit stage's value
     threshold: float = 0.5            # probability above which a pixel / Gaussian is "changed"
     max_side: int | None = None       # longest image side for training; None = the fit's, 0 = full
@@ -138,16 +141,50 @@ def change_probability(logits: torch.Tensor) -> torch.Tensor:
     return torch.sigmoid(change_logit(logits))
 
 
-def mask_bce(logits: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
+def mask_bce(logits: torch.Tensor, target: torch.Tensor, pos_fraction: float | None = None
+             ) -> torch.Tensor:
     """The 2D loss: binary cross-entropy of the rendered change probability against a mask.
 
     Args:
         logits: [..., H, W, 2] rendered class logits.
         target: [..., H, W] mask (bool or float in [0, 1]; 1 = changed).
+        pos_fraction: None = plain mean over pixels (the paper's 1/|M| normalisation); else
+            the fraction f of changed pixels over all training masks, and the loss is class
+            balanced (see :func:`bce_on_change_logit`).
     Returns:
-        scalar, mean over pixels (the paper's 1/|M| normalisation).
+        scalar.
     """
-    return F.binary_cross_entropy_with_logits(change_logit(logits), target.to(logits.dtype))
+    return bce_on_change_logit(change_logit(logits), target, pos_fraction)
+
+
+def bce_on_change_logit(z: torch.Tensor, target: torch.Tensor,
+                        pos_fraction: float | None = None) -> torch.Tensor:
+    """BCE of ``sigmoid(z)`` against ``target`` (same shapes; 1 = changed), mean over pixels.
+
+    With ``pos_fraction`` = f in (0, 1) every changed pixel is weighted ``0.5 / f`` and every
+    unchanged one ``0.5 / (1 - f)`` (soft targets interpolate): over the training set this is
+    (mean loss on changed pixels + mean loss on unchanged pixels) / 2, so the few changed
+    pixels (often < 5 %) count as much as the background and a Gaussian seen changed in some
+    views and unchanged in others is not decided by pixel counts alone. The weights have mean 1
+    over the training set, so the loss keeps the scale of the plain BCE (and its balance with
+    L3d). f outside (0, 1) (no changed or no unchanged pixel anywhere) gives the plain BCE.
+    """
+    target = target.to(z.dtype)
+    if pos_fraction is None or not 0.0 < pos_fraction < 1.0:
+        return F.binary_cross_entropy_with_logits(z, target)
+    w = target * (0.5 / pos_fraction) + (1.0 - target) * (0.5 / (1.0 - pos_fraction))
+    return F.binary_cross_entropy_with_logits(z, target, weight=w)
+
+
+def changed_fraction(targets) -> float:
+    """Fraction of changed pixels (sum of soft target values / pixel count) over ``targets``
+    (an iterable of [H, W] tensors or arrays in [0, 1])."""
+    pos = tot = 0.0
+    for t in targets:
+        t = torch.as_tensor(t)
+        pos += float(t.double().sum())
+        tot += t.numel()
+    return pos / tot if tot else 0.0
 
 
 def neighbour_kl(logits: torch.Tensor, sample: torch.Tensor, neighbours: torch.Tensor
@@ -231,6 +268,103 @@ def render_features(g, encoding: torch.Tensor, camera, background: torch.Tensor 
     else:
         out["features"] = render
     return out
+
+
+# --------------------------------------------------------------------------------------------
+# cached blend weights (frozen geometry)
+
+
+@dataclass
+class BlendWeights:
+    """The compositing weights of one camera: ``F[pix] = sum_p weight[p] * e[gid[p]]``.
+
+    With the geometry fixed the rasterizer is linear in the features, so a key view's rendered
+    features are a sparse matrix [H*W, N] times the encodings. Storing its non-zeros lets
+    training skip projection, sorting and compositing at every step.
+
+    Attributes:
+        pix: [P] int32 flat pixel index ``row * width + col`` (sorted).
+        gid: [P] int32 Gaussian index.
+        weight: [P] float32 ``alpha_i T_i`` (the blending weight, as in the rasterizer).
+        alpha: [H*W] float32 accumulated opacity ``sum of weights`` per pixel.
+        width, height: image size (px).
+    """
+
+    pix: torch.Tensor
+    gid: torch.Tensor
+    weight: torch.Tensor
+    alpha: torch.Tensor
+    width: int
+    height: int
+
+    @property
+    def nbytes(self) -> int:
+        return sum(x.element_size() * x.numel() for x in (self.pix, self.gid, self.weight))
+
+
+@torch.no_grad()
+def blend_weights(g, camera) -> BlendWeights:
+    """The blending weights of Gaussians ``g`` (activated, e.g. ``model.at_time(t)``) at
+    ``camera`` (:class:`gdiff.cameras.Camera`, OpenCV axes, pixel centres at +0.5).
+
+    Same maths as :func:`gdiff.splat.rasterize.rasterize` (EWA projection with its default
+    near/far planes and 0.3 px^2 dilation, 3-sigma ellipse, alpha = min(0.99, o exp(-sigma))
+    skipped below 1/255, front-to-back in depth order, compositing stopped at T <= 1e-4), so
+    ``render_blended(weights, e)`` equals the rasterized features of ``e`` (no background).
+    Memory: 12 bytes per (pixel, Gaussian) pair, about 30-40 pairs per pixel on fitted scenes.
+    """
+    from .cameras import stack_for_render
+    from .splat.rasterize import (ALPHA_MAX, ALPHA_MIN, SIGMA_MAX, T_MIN, _pixel_pairs, _sigma,
+                                  covariance_3d, opacity_footprint, project_gaussians)
+
+    dev = g.means.device
+    W, H = camera.width, camera.height
+    viewmats, Ks = stack_for_render([camera], device=dev, dtype=g.means.dtype)
+    proj = project_gaussians(g.means, covariance_3d(g.quats, g.scales), viewmats, Ks, W, H)
+    ext, drawn = opacity_footprint(proj["extents"], proj["visible"], g.opacities)
+    vis = drawn[0].nonzero(as_tuple=True)[0]
+    gids = vis[torch.argsort(proj["depths"][0, vis], stable=True)]  # depth order
+    m2d, con, opa = proj["means2d"][0, gids], proj["conics"][0, gids], g.opacities[gids]
+    src, px, py = _pixel_pairs(m2d, ext[0, gids], W, H)
+    sig = _sigma(m2d[src], con[src], px, py)
+    raw = opa[src] * torch.exp(-sig)
+    keep = (sig <= SIGMA_MAX) & (sig >= 0) & (torch.clamp_max(raw, ALPHA_MAX) >= ALPHA_MIN)
+    src, pix = src[keep], (py * W + px)[keep]
+    alpha = torch.clamp_max(raw[keep], ALPHA_MAX)
+    del sig, raw, px, py
+    order = torch.argsort(pix * max(len(gids), 1) + src)  # by pixel, then depth
+    src, pix, alpha = src[order], pix[order], alpha[order]
+    logt = torch.log1p(-alpha.double())
+    excl = torch.cumsum(logt, 0) - logt  # log transmittance before each pair (running)
+    _, counts = torch.unique_consecutive(pix, return_counts=True)
+    start = torch.cumsum(counts, 0) - counts
+    T = torch.exp(excl - torch.repeat_interleave(excl[start], counts, output_size=len(pix)))
+    live = (T * (1.0 - alpha.double())) > T_MIN
+    w = (alpha * T.to(alpha.dtype))[live].float()
+    pix = pix[live]
+    acc = torch.zeros(H * W, dtype=torch.float32, device=dev).index_add_(0, pix, w)
+    return BlendWeights(pix.int(), gids[src[live]].int(), w, acc, W, H)
+
+
+def render_blended(bw: BlendWeights, values: torch.Tensor) -> torch.Tensor:
+    """Blend per-Gaussian ``values`` [N] or [N, D] with cached weights: [H, W] or [H, W, D]
+    (no background term). Differentiable w.r.t. ``values``."""
+    v = values[bw.gid]
+    w = bw.weight.to(values.dtype)
+    v = v * (w if v.dim() == 1 else w[:, None])
+    out = values.new_zeros((bw.height * bw.width,) + tuple(values.shape[1:])).index_add(
+        0, bw.pix, v)
+    return out.reshape((bw.height, bw.width) + tuple(values.shape[1:]))
+
+
+def blended_change_logit(head: "ChangeHead", bw: BlendWeights) -> torch.Tensor:
+    """The rendered change logit ``z = Conv(F)[changed] - Conv(F)[unchanged]`` [H, W] from cached
+    weights: the head is affine, so ``z = sum_i w_i (d . e_i) + b_d`` with ``d``, ``b_d`` the
+    differences of the conv's weight rows and biases (1 channel blended instead of D)."""
+    w = head.conv.weight[:, :, 0, 0]
+    d = w[CHANGED] - w[UNCHANGED]
+    b = head.conv.bias[CHANGED] - head.conv.bias[UNCHANGED]
+    return render_blended(bw, head.encoding @ d) + b
 
 
 # --------------------------------------------------------------------------------------------
@@ -590,6 +724,14 @@ def fine_tune(pm: PartitionModel, data: list[dict], opts: PartitionOptions, ckdi
               extent: float = 1.0, key: dict | None = None) -> list[dict]:
     """Optimise ``pm`` on ``data``: L = L1 + L_TV + lambda_2d BCE + lambda_3d L3d.
 
+    With ``opts.geometry_lr_scale`` = 0 (default) the fitted Gaussians are frozen: L1 and L_TV
+    are then constants and are skipped, the blending weights of every training view are
+    computed once (:func:`blend_weights`) and a step blends one number per Gaussian (the
+    change logit) instead of rasterizing colour and features. With ``geometry_lr_scale`` > 0
+    the fitted parameters are fine-tuned too and every step rasterizes colour + encodings.
+    The BCE is class balanced (:func:`bce_on_change_logit`) unless ``opts.balance_classes``
+    is False; the changed-pixel fraction is taken over all ``data`` targets.
+
     Args:
         pm: the model (modified in place; its device is used).
         data: one dict per training photo: ``camera`` (Camera), ``time`` (0/1), ``image``
@@ -636,7 +778,12 @@ def fine_tune(pm: PartitionModel, data: list[dict], opts: PartitionOptions, ckdi
         else:
             ck = None
     pm.train()
+    frozen = opts.geometry_lr_scale <= 0
+    pos_fraction = (changed_fraction(v["target"] for v in data) if opts.balance_classes
+                    else None)
     opt = torch.optim.Adam(_param_groups(pm, opts, extent), eps=1e-15)
+    if frozen:
+        frozen_g, weights = _cache_weights(pm, data)
     if ck is not None:
         opt.load_state_dict(blob["optimizer"])
     last_ck = str(ck) if ck is not None else "none"
@@ -644,13 +791,21 @@ def fine_tune(pm: PartitionModel, data: list[dict], opts: PartitionOptions, ckdi
     t0 = _time.perf_counter()
     for it in progress(range(start, opts.iterations), desc="partition", initial=start,
                        total=opts.iterations):
-        v = data[int(_view_rng(opts.seed, it, 0).integers(len(data)))]
-        g = pm.fit.at_time(float(v["time"]))
-        r = render_features(g, pm.head.encoding, v["camera"], pm.background, with_rgb=True)
-        loss_l1 = l1(r["rgb"], v["image"])
-        loss_tv = _tv_loss(pm, opts.lambda_tv)
-        loss_bce = mask_bce(pm.head.classify(r["features"]), v["target"])
-        loss = loss_l1 + loss_tv + opts.lambda_2d * loss_bce
+        vi = int(_view_rng(opts.seed, it, 0).integers(len(data)))
+        v = data[vi]
+        if frozen:
+            g = frozen_g[float(v["time"])]
+            z = blended_change_logit(pm.head, weights[vi])
+            loss_bce = bce_on_change_logit(z, v["target"], pos_fraction)
+            loss_l1 = loss_tv = loss_bce.new_full((), float("nan"))  # constants: not computed
+            loss = opts.lambda_2d * loss_bce
+        else:
+            g = pm.fit.at_time(float(v["time"]))
+            r = render_features(g, pm.head.encoding, v["camera"], pm.background, with_rgb=True)
+            loss_l1 = l1(r["rgb"], v["image"])
+            loss_tv = _tv_loss(pm, opts.lambda_tv)
+            loss_bce = mask_bce(pm.head.classify(r["features"]), v["target"], pos_fraction)
+            loss = loss_l1 + loss_tv + opts.lambda_2d * loss_bce
         if opts.lambda_3d > 0 and it % opts.l3d_every == 0:
             s, nb = index.sample(g.means, rng=_view_rng(opts.seed, it, 1))
             loss_3d = neighbour_kl(pm.head.gaussian_logits(), s, nb)
@@ -682,6 +837,23 @@ def fine_tune(pm: PartitionModel, data: list[dict], opts: PartitionOptions, ckdi
             last_ck = str(Path(ckdir) / f"ckpt_{done:06d}.pt")
     pm.eval()
     return rows
+
+
+def _cache_weights(pm: PartitionModel, data: list[dict]):
+    """Frozen geometry: the activated Gaussians per training time (no grad) and the
+    :class:`BlendWeights` of every view in ``data`` (same order)."""
+    import time as _time
+
+    from .log import progress
+
+    t0 = _time.perf_counter()
+    with torch.no_grad():
+        gs = {t: pm.fit.at_time(t) for t in sorted({float(v["time"]) for v in data})}
+    weights = [blend_weights(gs[float(v["time"])], v["camera"])
+               for v in progress(data, desc="partition weights")]
+    log.info("blend weights of %d views: %.0f MB, %.1f s", len(data),
+             sum(w.nbytes for w in weights) / 2**20, _time.perf_counter() - t0)
+    return gs, weights
 
 
 def _load_state(pm: PartitionModel, blob: dict) -> None:

@@ -172,6 +172,35 @@ def test_time_opacity_term_and_files_without_it(tmp_path):
     assert torch.equal(back.at_time(0.0).opacities, back.at_time(1.0).opacities)
 
 
+def test_view_dependent_time_term_gate_and_files_without_it(tmp_path):
+    """``dshN`` changes the higher SH coefficients by -d at t=0 and +d at t=1; a time gate of
+    0 removes every per-Gaussian time term of that Gaussian, and folding the gate into the
+    parameters renders the same; files without ``dshN`` load with no view-dependent change."""
+    xyz, rgb = _points(20)
+    m = GaussianModel4D.from_points(xyz, rgb, 2, None, init_opacity=0.5)
+    assert m.splats["dshN"].shape == (20, 8, 3)
+    with torch.no_grad():
+        m.splats["dshN"][:] = 0.25
+        m.splats["dsh0"][:] = 0.5
+        m.splats["dopacity"][:] = 2.0
+    sh0, sh1 = (m.at_time(t).sh.detach() for t in (0.0, 1.0))
+    torch.testing.assert_close(sh1[:, 1:] - sh0[:, 1:], torch.full((20, 8, 3), 0.5))
+    torch.testing.assert_close(sh1[:, :1] - sh0[:, :1], torch.full((20, 1, 3), 1.0))
+    gate = (torch.arange(20) < 12).float()
+    g0, g1 = (m.at_time(t, gate) for t in (0.0, 1.0))
+    assert torch.equal(g0.sh[12:], g1.sh[12:]) and torch.equal(g0.opacities[12:],
+                                                               g1.opacities[12:])
+    assert torch.equal(g1.sh[:12], m.at_time(1.0).sh[:12])
+    m.apply_time_gate(gate)
+    for t, g in ((0.0, g0), (1.0, g1)):
+        torch.testing.assert_close(m.at_time(t).sh, g.sh)
+        torch.testing.assert_close(m.at_time(t).opacities, g.opacities)
+    old = {k: v for k, v in m.state_dict().items() if k != "splats.dshN"}
+    back = GaussianModel4D.from_state(m.config(), old)
+    assert torch.equal(back.splats["dshN"], torch.zeros(20, 8, 3))
+    assert torch.equal(back.at_time(0.0).sh[:, 1:], back.at_time(1.0).sh[:, 1:])
+
+
 def test_compiled_lookup_matches_grid_sample_values_and_gradients():
     """The CPU kernel (positions without gradient) equals the grid_sample reference (used when
     the positions carry a gradient), for odd plane sizes, points outside the box, t between

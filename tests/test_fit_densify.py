@@ -135,3 +135,38 @@ def test_opacity_reset_caps_every_time_and_stats_skip_absent_gaussians():
     st.update(grad, radii, 200, 100, present=torch.tensor([True, False, True]))
     assert torch.equal(st.count, torch.tensor([1.0, 0.0, 1.0]))
     assert float(st.grad2d[1]) == 0.0 and float(st.grad2d[0]) > 0.0
+
+
+def test_view_counts_per_time_follow_clones_splits_and_pruning():
+    """``seen`` counts the views of each time in which a Gaussian projects into the image (any
+    opacity; with centres given, its centre must be inside); clones and split children inherit their parent's counts, pruned rows go, and
+    a refinement keeps the counts (only the window statistics restart)."""
+    params, opt = _setup(6)
+    with torch.no_grad():
+        params["scales"][3] = math.log(0.5)  # large: split
+        params["opacities"][5] = -10.0  # transparent: pruned
+    st = DensifyStats(6, n_times=2)
+    st.observe(torch.tensor([[1, 1, 0, 2, 0, 3]], dtype=torch.int32), 0)
+    st.observe(torch.tensor([[1, 0, 0, 1, 0, 0], [1, 0, 0, 0, 0, 4]], dtype=torch.int32), 1)
+    st.observe(torch.tensor([[[1, 0], [0, 0], [0, 0], [0, 0], [2, 2], [0, 0]]],
+                            dtype=torch.int32), 1)  # [C, N, 2] radii
+    # with the centres given, a Gaussian that only reaches into the image is not counted
+    m2d = torch.tensor([[[5.0, 5.0], [-1.0, 5.0], [5.0, 5.0], [5.0, 9.5], [5.0, 10.0],
+                         [10.0, 5.0]]])
+    st.observe(torch.tensor([[1, 1, 0, 1, 1, 1]], dtype=torch.int32), 0, m2d, 10, 10)
+    expected = {0: [2, 3], 1: [1, 0], 2: [0, 0], 3: [2, 1], 4: [0, 1], 5: [1, 1]}
+    assert st.seen.tolist() == [expected[i] for i in range(6)]
+    assert st.seen_at_all_times(1).tolist() == [True, False, False, True, False, True]
+    assert st.seen_at_all_times(2).tolist() == [True] + [False] * 5
+    st.grad2d[:] = torch.tensor([1e-3, 0.0, 0.0, 1e-3, 0.0, 0.0])
+    st.count[:] = 1
+    ev = refine(params, opt, st, DensifyThresholds(), extent=1.0, prune_large=False)
+    assert ev == {"cloned": 1, "split": 1, "pruned": 1, "n": 7}
+    enc = [round(x) for x in params["encoding"][:, 0].tolist()]
+    assert st.seen.tolist() == [expected[i] for i in enc]
+    assert len(st) == 7 and float(st.count.sum()) == 0.0
+    st.reset()
+    assert st.seen.tolist() == [expected[i] for i in enc]
+    back = DensifyStats(0)
+    back.load_state_dict(st.state_dict())
+    assert torch.equal(back.seen, st.seen)

@@ -290,7 +290,7 @@ class DensifyStats:
     largest screen radius seen, as a fraction of max(width, height).
 
     Over the whole fit: ``seen`` [N, T], in how many training views of each of the T times the
-    Gaussian projected into the image (its 3-sigma box overlaps it, whatever its opacity; see
+    Gaussian was in view (not culled, centre inside the image, whatever its opacity; see
     :meth:`observe`). A clone or split child inherits its parent's row; refinements keep it.
     """
 
@@ -304,12 +304,20 @@ class DensifyStats:
         return int(self.grad2d.shape[0])
 
     @torch.no_grad()
-    def observe(self, radii: torch.Tensor, time_index: int) -> None:
+    def observe(self, radii: torch.Tensor, time_index: int, means2d: torch.Tensor | None = None,
+                width: int = 0, height: int = 0) -> None:
         """Count the views of time ``time_index`` that see each Gaussian: radii [C, N] or
-        [C, N, 2] (pixels, 0 = outside the image or behind the camera)."""
+        [C, N, 2] (pixels, 0 = culled: behind the camera or off the image). With ``means2d``
+        [C, N, 2] (pixels) and the image size, only a Gaussian whose centre falls inside the
+        image counts (one that only reaches in with its border tells little about itself)."""
         if radii.dim() == 3:
             radii = radii.max(dim=-1).values
-        self.seen[:, time_index] += (radii > 0).sum(0).to(self.seen.dtype)
+        vis = radii > 0
+        if means2d is not None:
+            m = means2d.detach()
+            vis = vis & (m[..., 0] >= 0) & (m[..., 0] < width) & (m[..., 1] >= 0) \
+                & (m[..., 1] < height)
+        self.seen[:, time_index] += vis.sum(0).to(self.seen.dtype)
 
     def seen_at_all_times(self, min_views: int) -> torch.Tensor:
         """[N] bool: seen in at least ``min_views`` views of every time."""

@@ -22,8 +22,8 @@ Training (after Wu et al., CVPR 2024, "4D Gaussian Splatting"):
    the Gaussians' extent) and trained with the Gaussians; each image is rendered at its time.
 
 Per-Gaussian changes over time (``dopacity``, ``dsh0``, ``dshN``; see
-:mod:`gdiff.splat.model`) are learnt only for Gaussians seen (projected into the image) in at
-least ``time_min_views`` training views of *each* time; the others keep one state for both
+:mod:`gdiff.splat.model`) are learnt only for Gaussians in view (centre inside the image, any
+opacity) in at least ``time_min_views`` training views of *each* time; the others keep one state for both
 times. Before and after images are often taken from different places (other heights, other
 sides), and a part of the scene seen at one time only carries no evidence of how it looks at
 the other: with the change terms free, every update from the time that sees it moves the
@@ -433,7 +433,7 @@ class Trainer:
         h, w = image.shape[:2]
         colors, _, meta = rasterize_gaussians(g, view.viewmat, K, w, h, self._background(),
                                               "RGB", o.backend)
-        self.stats.observe(meta["radii"], self.times.index(view.time))
+        self.stats.observe(meta["radii"], self.times.index(view.time), meta["means2d"], w, h)
         means2d = meta["means2d"]
         densify_now = o.densify_from <= it < o.densify_until and o.densify_every > 0
         if densify_now and means2d.requires_grad:

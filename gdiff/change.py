@@ -64,6 +64,20 @@ class CompareOptions:
     moved_similarity: a removed and an added instance are one moved object when the
         Bhattacharyya coefficient of their chromaticity histograms is >= this and their metric
         sizes agree within a factor 1.5.
+    evidence_open: changed-depth pixels count as evidence only inside blobs at least this
+        fraction of the image's longer side wide (morphological opening); thinner structures
+        (depth noise of a fitted model along texture edges and silhouettes) do not. 0 disables.
+    texture_scale: the texture test compares the two renders at this fraction of their
+        resolution (a fitted model renders the finest detail differently at the two times;
+        1 = full resolution).
+    texture_color_similarity: a candidate confirmed by texture alone must also differ in
+        colour: the Bhattacharyya coefficient of the chromaticity histograms of its region at
+        the two times below this (1 disables this requirement).
+    min_observed: with key views (training cameras, see :mod:`gdiff.coverage`) an ID is judged
+        at a pose only when at least this fraction of its mask there is observed at both times;
+        the evidence is measured on observed pixels only.
+    observed_depth_tol: relative depth agreement for a key view to see a surface point.
+    observed_min_views: key views of a time that must see a point for it to be observed.
     """
 
     presence_iou: float = 0.3
@@ -76,10 +90,22 @@ class CompareOptions:
     moved_similarity: float = 0.85
     same_similarity: float = 0.35
     min_texture: float = 0.03
+    evidence_open: float = 0.02
+    texture_scale: float = 1.0
+    texture_color_similarity: float = 0.85
+    min_observed: float = 0.5
+    observed_depth_tol: float = 0.05
+    observed_min_views: int = 3
 
     def __post_init__(self):
+        if not 0 < self.texture_scale <= 1:
+            raise ConfigError("config key 'compare.texture_scale' must lie in (0, 1]")
+        if self.evidence_open < 0 or self.observed_depth_tol <= 0 or self.observed_min_views < 1:
+            raise ConfigError("config keys 'compare.evidence_open' (>= 0), "
+                              "'compare.observed_depth_tol' (> 0) and "
+                              "'compare.observed_min_views' (>= 1) are out of range")
         for k in ("presence_iou", "min_evidence", "vote_frac", "moved_similarity",
-                  "same_similarity"):
+                  "same_similarity", "min_observed", "texture_color_similarity"):
             if not 0.0 <= getattr(self, k) <= 1.0:
                 raise ConfigError(f"config key 'compare.{k}' must lie in [0, 1]")
 
@@ -100,6 +126,17 @@ def depth_change(depth0: np.ndarray, depth1: np.ndarray, rel: float) -> np.ndarr
     zmin = np.where(both, np.minimum(z0, z1), 1.0)
     out[both] = (np.abs(z0 - z1)[both] > rel * zmin[both])
     return out
+
+
+def coherent(mask: np.ndarray, width_frac: float) -> np.ndarray:
+    """``mask`` bool [H, W] opened (eroded, then dilated) by a square of odd side
+    ~``width_frac`` x max(H, W) pixels (at least 3): only blobs at least that wide remain.
+    ``width_frac`` <= 0 returns the mask unchanged."""
+    if width_frac <= 0:
+        return mask
+    k = max(3, 2 * int(round(width_frac * max(mask.shape) / 2)) + 1)
+    return cv2.morphologyEx(mask.astype(np.uint8), cv2.MORPH_OPEN,
+                            np.ones((k, k), np.uint8)) > 0
 
 
 def _normalised_chroma(rgb: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -149,8 +186,19 @@ def appearance_change(rgb0: np.ndarray, rgb1: np.ndarray, chroma_tol: float,
 # per-pose comparison and per-ID decision
 # ------------------------------------------------------------------------------------------
 
-def _chroma_hist(rgb: np.ndarray, mask: np.ndarray, bins: int = 8) -> np.ndarray:
-    c, w = _normalised_chroma(rgb)
+def _rescale(rgb: np.ndarray, scale: float) -> np.ndarray:
+    """``rgb`` [H, W, 3] resized by ``scale`` (area averaging); unchanged for scale >= 1."""
+    if scale >= 1:
+        return rgb
+    H, W = rgb.shape[:2]
+    size = (max(8, int(round(W * scale))), max(8, int(round(H * scale))))
+    return cv2.resize(np.asarray(rgb, np.float32), size, interpolation=cv2.INTER_AREA)
+
+
+def _chroma_hist(rgb: np.ndarray | tuple, mask: np.ndarray, bins: int = 8) -> np.ndarray:
+    """2-D histogram [bins, bins] of the grey-world chromaticity (r, g) of ``mask`` bool [H, W]
+    in ``rgb`` (sRGB [H, W, 3], or its :func:`_normalised_chroma` pair, to reuse it)."""
+    c, w = rgb if isinstance(rgb, tuple) else _normalised_chroma(rgb)
     sel = mask & (w > 0.3)
     if not sel.any():
         return np.zeros((bins, bins))
@@ -162,7 +210,8 @@ def _chroma_hist(rgb: np.ndarray, mask: np.ndarray, bins: int = 8) -> np.ndarray
 def pose_stats(ids0: np.ndarray, ids1: np.ndarray, o: CompareOptions,
                rgb0: np.ndarray | None = None, rgb1: np.ndarray | None = None,
                depth0: np.ndarray | None = None, depth1: np.ndarray | None = None,
-               focal: float | None = None, camera=None) -> dict[int, dict]:
+               focal: float | None = None, camera=None, observed0: np.ndarray | None = None,
+               observed1: np.ndarray | None = None) -> dict[int, dict]:
     """Compare the ID maps int [H, W] of one pose at t0 and t1.
 
     Returns, per ID visible at this pose: ``area0``, ``area1`` (pixels), ``candidate`` (absent
@@ -172,7 +221,7 @@ def pose_stats(ids0: np.ndarray, ids1: np.ndarray, o: CompareOptions,
     ``confirmed``, ``hist`` (chromaticity histogram, for moved pairing), ``size`` (metric size
     sqrt(area) * z / f when depth and ``focal`` are known, else sqrt(area) in pixels) and
     ``pos`` (median world point [3] with depth and ``camera``, else the mask centroid in
-    pixels; same units as ``size``).
+    pixels; same units as ``size``) and ``observed`` (the ID can be judged at this pose).
 
     A candidate is confirmed when its depth changed (``evidence >= min_evidence``) or its
     texture differs between the times (``similarity < same_similarity``); without depth an
@@ -180,6 +229,13 @@ def pose_stats(ids0: np.ndarray, ids1: np.ndarray, o: CompareOptions,
     depth, pixels of the candidate that are hidden at the other time behind a nearer surface
     are left out of both tests (the instance may still stand behind the newcomer); a candidate
     hidden so for more than three quarters is not a candidate at this pose.
+
+    Depth evidence counts changed-depth pixels inside coherent blobs only
+    (:func:`coherent`, ``evidence_open``). ``observed0`` / ``observed1`` (bool [H, W], see
+    :mod:`gdiff.coverage`): pixels whose surface a photo of that time saw. An ID whose mask is
+    observed at both times for less than ``min_observed`` is not judged at this pose
+    (``observed`` False: no candidate, left out of the vote); otherwise its evidence is measured
+    on the pixels observed at both times.
     """
     has_depth = depth0 is not None and depth1 is not None
     has_rgb = rgb0 is not None and rgb1 is not None
@@ -187,7 +243,8 @@ def pose_stats(ids0: np.ndarray, ids1: np.ndarray, o: CompareOptions,
 
     def ev_depth():
         if "depth" not in cache:
-            cache["depth"] = depth_change(depth0, depth1, o.depth_change_rel)
+            cache["depth"] = coherent(depth_change(depth0, depth1, o.depth_change_rel),
+                                      o.evidence_open)
         return cache["depth"]
 
     def nearer():
@@ -201,9 +258,17 @@ def pose_stats(ids0: np.ndarray, ids1: np.ndarray, o: CompareOptions,
 
     def grads():
         if "g0" not in cache:
-            cache["g0"] = image_texture(rgb0, o.min_texture)
-            cache["g1"] = image_texture(rgb1, o.min_texture)
+            cache["g0"] = image_texture(_rescale(rgb0, o.texture_scale), o.min_texture)
+            cache["g1"] = image_texture(_rescale(rgb1, o.texture_scale), o.min_texture)
         return cache["g0"], cache["g1"]
+
+    def texture_similarity(region):
+        g0, g1 = grads()
+        if g0.grad.shape[:2] != region.shape:
+            small = cv2.resize(region.astype(np.float32), g0.grad.shape[1::-1],
+                               interpolation=cv2.INTER_AREA)
+            region = small >= 0.5
+        return region_similarity(g0, g1, region, o.min_texture)
 
     def points(time: int):
         """World points [H, W, 3] of the depth at ``time``, or None."""
@@ -216,11 +281,20 @@ def pose_stats(ids0: np.ndarray, ids1: np.ndarray, o: CompareOptions,
             cache[f"P{time}"] = world_points(z, camera)
         return cache[f"P{time}"]
 
+    def chroma(time: int):
+        if f"c{time}" not in cache:
+            cache[f"c{time}"] = _normalised_chroma(rgb0 if time == 0 else rgb1)
+        return cache[f"c{time}"]
+
     def ev_chroma():
         if "chroma" not in cache:
             cache["chroma"] = appearance_change(rgb0, rgb1, o.chroma_tol, o.ncc_min)
         return cache["chroma"]
 
+    known = None
+    if observed0 is not None and observed1 is not None:
+        known = np.asarray(observed0, bool) & np.asarray(observed1, bool)
+    cont0, cont1 = _continuing(ids0, ids1, o)
     out: dict[int, dict] = {}
     labels = np.union1d(np.unique(ids0), np.unique(ids1))
     for t in labels[labels != 0]:
@@ -237,6 +311,13 @@ def pose_stats(ids0: np.ndarray, ids1: np.ndarray, o: CompareOptions,
         else:
             cand = True
             region0, region1 = (m0, np.zeros_like(m0)) if a0 else (np.zeros_like(m1), m1)
+        seen = True
+        if known is not None:
+            m = (m0 if a0 else False) | (m1 if a1 else False)
+            seen = bool(known[m].mean() >= o.min_observed)
+            if not seen:
+                cand = False  # the model is not constrained there at one of the times
+            region0, region1 = region0 & known, region1 & known
         evidence, sim, confirmed = float("nan"), float("nan"), bool(cand)
         if cand and (has_depth or has_rgb):
             region = region0 | region1
@@ -250,17 +331,27 @@ def pose_stats(ids0: np.ndarray, ids1: np.ndarray, o: CompareOptions,
             if cand and has_depth:
                 evidence = float(ev_depth()[region].mean()) if region.any() else 0.0
             if cand and has_rgb:
-                sim = region_similarity(*grads(), region, o.min_texture)
+                sim = texture_similarity(region)
+            if cand and has_depth and region.any():
+                # a piece split off a segment that stays at the other time (same place):
+                # the surface is still there, only a change of geometry shows a change
+                on_cont = ((region0 & region & cont1) | (region1 & region & cont0)).sum()
+                if on_cont >= 0.5 * region.sum():
+                    sim = float("nan")
             if cand:
-                confirmed = bool((has_depth and evidence >= o.min_evidence)
-                                 or (sim < o.same_similarity))
+                differs = sim < o.same_similarity
+                if differs and o.texture_color_similarity < 1:
+                    colour = _bhattacharyya(_chroma_hist(chroma(0), region),
+                                            _chroma_hist(chroma(1), region))
+                    differs = colour < o.texture_color_similarity
+                confirmed = bool((has_depth and evidence >= o.min_evidence) or differs)
             if cand and not has_depth and np.isnan(sim) and has_rgb and region.any():
                 evidence = float(ev_chroma()[region].mean())
                 confirmed = evidence >= o.min_evidence
         rec = dict(area0=a0, area1=a1, candidate=bool(cand), evidence=evidence,
-                   similarity=sim, confirmed=confirmed)
+                   similarity=sim, confirmed=confirmed, observed=seen)
         rgb, m, z = (rgb0, m0, depth0) if a0 else (rgb1, m1, depth1)
-        rec["hist"] = _chroma_hist(rgb, m) if rgb is not None else None
+        rec["hist"] = _chroma_hist(chroma(0 if a0 else 1), m) if rgb is not None else None
         size = np.sqrt(m.sum())
         if z is not None and focal:
             size = size * float(np.median(z[m])) / focal
@@ -269,6 +360,22 @@ def pose_stats(ids0: np.ndarray, ids1: np.ndarray, o: CompareOptions,
         rec["pos_size"] = rec["size"] if len(rec["pos"]) == 3 else float(np.sqrt(m.sum()))
         out[int(t)] = rec
     return out
+
+
+def _continuing(ids0: np.ndarray, ids1: np.ndarray, o: CompareOptions
+                ) -> tuple[np.ndarray, np.ndarray]:
+    """bool [H, W] masks at t0 and t1 of the IDs that stay at this pose: visible at both times
+    (>= ``min_area``) with mask IoU >= ``presence_iou`` (not candidates)."""
+    a, b = np.asarray(ids0, np.int64), np.asarray(ids1, np.int64)
+    n = int(max(a.max(initial=0), b.max(initial=0))) + 1
+    area0 = np.bincount(a.ravel(), minlength=n)
+    area1 = np.bincount(b.ravel(), minlength=n)
+    same = a == b
+    inter = np.bincount(a[same].ravel(), minlength=n)
+    union = np.maximum(area0 + area1 - inter, 1)
+    stay = (area0 >= o.min_area) & (area1 >= o.min_area) & (inter / union >= o.presence_iou)
+    stay[0] = False
+    return stay[a], stay[b]
 
 
 def _position(mask: np.ndarray, points: np.ndarray | None) -> np.ndarray:
@@ -293,6 +400,8 @@ def decide(stats: list[tuple[object, dict[int, dict]]], o: CompareOptions) -> pd
                                                     area=[], hist=None, size=[], pos={}))
     for name, st in stats:
         for t, r in st.items():
+            if not r.get("observed", True):
+                continue  # not judged at this pose (see pose_stats)
             a = acc[t]
             a["n"] += 1
             a["n0"] += r["area0"] > 0

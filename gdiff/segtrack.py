@@ -31,6 +31,7 @@ import pandas as pd
 
 from .cameras import Camera
 from .change import CompareOptions, change_masks, decide, pose_stats
+from .coverage import KeyView, observed
 from .errors import SceneError
 from .io import read_ids, read_json, write_csv, write_ids, write_image, write_json, write_mask
 from .log import progress
@@ -85,27 +86,52 @@ def track_paths(frames: dict[Key, dict], segmenter: Segmenter,
     return ids, tracks
 
 
+def key_views(frames, keys: dict[tuple[str, int], int] | None) -> dict[int, list[KeyView]]:
+    """Key views per time for :mod:`gdiff.coverage`: ``keys[(path, i)] = time`` (0 or 1) names
+    the path frames that are training cameras of that time; each contributes its camera and
+    its depth rendered at that time (``frames``: dict or callable key -> frame dict). Frames
+    without depth or camera are skipped."""
+    get = frames if callable(frames) else (lambda k: (frames or {}).get(k, {}))
+    out: dict[int, list[KeyView]] = {0: [], 1: []}
+    for (p, i), time in sorted((keys or {}).items()):
+        f = get((p, TIMES[int(time)], i))
+        if f.get("depth") is not None and f.get("camera") is not None:
+            out[int(time)].append(KeyView(f["camera"], f["depth"]))
+    return out
+
+
 def compare_paths(ids: dict[Key, np.ndarray], frames: dict[Key, dict] | None,
-                  options: CompareOptions | None = None
+                  options: CompareOptions | None = None,
+                  keys: dict[tuple[str, int], int] | None = None
                   ) -> tuple[dict[tuple[str, int], tuple[np.ndarray, np.ndarray]], pd.DataFrame]:
     """Change masks per pose from the tracked ID maps.
 
     ``ids[(path, t, i)]``: int [H, W]; ``frames`` (optional, same keys) gives ``rgb``/``depth``/
-    ``camera`` for the evidence check (see :mod:`gdiff.change`); it may also be a callable
-    key -> frame dict (to load lazily). Returns ({(path, i): (mask_t0, mask_t1)}, changes
-    table: id, changed, type, partner, n_t0, n_t1, n_confirmed, first, last, area).
+    ``camera`` (and optional ``alpha``) for the evidence check (see :mod:`gdiff.change`); it
+    may also be a callable key -> frame dict (to load lazily). ``keys`` (optional):
+    ``{(path, i): time}`` of the path frames that are training cameras (key frames) of that
+    time; with them only pixels a training photo of each time saw are compared
+    (:mod:`gdiff.coverage`). Returns ({(path, i): (mask_t0, mask_t1)}, changes table: id,
+    changed, type, partner, n_t0, n_t1, n_confirmed, first, last, area).
     """
     o = options or CompareOptions()
     get = frames if callable(frames) else (lambda k: (frames or {}).get(k, {}))
     poses = sorted({(p, i) for p, _, i in ids})
+    views = key_views(get, keys) if keys else None
     stats = []
     for p, i in progress(poses, desc="compare"):
         f0, f1 = get((p, "t0", i)), get((p, "t1", i))
         cam = f0.get("camera")
+        seen = [None, None]
+        if views is not None and cam is not None:
+            for time, f in enumerate((f0, f1)):
+                if f.get("depth") is not None and views[time]:
+                    seen[time] = observed(f["depth"], cam, views[time], o.observed_depth_tol,
+                                          o.observed_min_views, f.get("alpha"))
         stats.append((f"{p}/{i:05d}", pose_stats(
             ids[(p, "t0", i)], ids[(p, "t1", i)], o, f0.get("rgb"), f1.get("rgb"),
             f0.get("depth"), f1.get("depth"), focal=cam.fx if cam is not None else None,
-            camera=cam)))
+            camera=cam, observed0=seen[0], observed1=seen[1])))
     df = decide(stats, o)
     changed = df.loc[df["changed"], "id"].tolist()
     masks = {(p, i): change_masks(ids[(p, "t0", i)], ids[(p, "t1", i)], changed)
@@ -193,6 +219,13 @@ def _overlay(rgb: np.ndarray, ids: np.ndarray) -> np.ndarray:
     return out
 
 
+def key_frames(meta: dict[str, list[dict]]) -> dict[tuple[str, int], int]:
+    """``{(path, i): time}`` of the key frames (training cameras) of sequence/poses.json
+    (``meta`` from :func:`_poses`): time 1 for an ``after`` set, else 0."""
+    return {(p, i): (1 if (fr.get("set") or "").endswith("after") else 0)
+            for p, frs in meta.items() for i, fr in enumerate(frs) if fr.get("key")}
+
+
 def segment_and_track(render_dir, poses_json, out_dir, options: SegmentOptions | None = None,
                       track_options: TrackOptions | None = None) -> dict:
     """Stage ``segment``: ID maps of every rendered frame in one ID space.
@@ -227,7 +260,8 @@ def compare(instances_dir, poses_json, out_dir, options: CompareOptions | None =
     """Stage ``compare``: change masks of every pose from the tracked IDs.
 
     Reads ``instances_dir/index.json`` (and through it the ID maps and the rendered EXR frames,
-    for the depth evidence); writes ``out_dir/<path>/<t0|t1|union>/NNNNN.png``,
+    for the depth evidence) and the key frames of ``poses_json`` (the training cameras: only
+    pixels a photo of each time saw are compared, :mod:`gdiff.coverage`); writes ``out_dir/<path>/<t0|t1|union>/NNNNN.png``,
     ``out_dir/changes.csv`` (id, type, partner, first/last pose, area, ...) and last
     ``out_dir/keyframes.csv`` (path, frame, image, set, time, mask_t0, mask_t1, mask_union;
     mask paths relative to the parent of ``out_dir``, i.e. results/<scene>/).
@@ -246,10 +280,10 @@ def compare(instances_dir, poses_json, out_dir, options: CompareOptions | None =
     def load(key):
         if key not in renders or not renders[key].exists():
             return {}
-        rgb, _, depth = _read_exr(renders[key])
-        return dict(rgb=rgb, depth=depth, camera=cams[key[0]][key[2]])
+        rgb, alpha, depth = _read_exr(renders[key])
+        return dict(rgb=rgb, alpha=alpha, depth=depth, camera=cams[key[0]][key[2]])
 
-    masks, df = compare_paths(ids, load, options)
+    masks, df = compare_paths(ids, load, options, keys=key_frames(meta))
     root = out_dir.parent
     rows = []
     for (p, i), (m0, m1) in sorted(masks.items()):

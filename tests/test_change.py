@@ -286,3 +286,125 @@ def test_pair_without_depth_ignores_shadows_and_lighting():
     assert f1 > 0.8, f1
     assert (u & shadow).sum() < 0.05 * shadow.sum()
     assert f1 > f1_base + 0.2, (f1, f1_base)
+
+
+# ------------------------------------------------------------------------------------------
+# renders of a fitted model: coverage by the training photos, render noise, fragments
+# ------------------------------------------------------------------------------------------
+
+def _plane_camera(x: float, f: float = 30.0):
+    """A camera at (x, 0, 0) looking along +z (OpenCV axes) at the plane z = 5, W x H."""
+    from gdiff.cameras import Camera
+
+    c2w = np.eye(4)
+    c2w[0, 3] = x
+    return Camera(W, H, f, f, W / 2, H / 2, c2w)
+
+
+def test_view_count_respects_frustum_and_occlusion():
+    from gdiff.coverage import KeyView, observed, view_count
+
+    cam = _plane_camera(0.0)
+    z = np.full((H, W), 5.0, np.float32)
+    key = _plane_camera(4.0)  # sees world x in [-1, 9] on the plane
+    zk = np.full((H, W), 5.0, np.float32)
+    zk[:, 50:] = 3.0  # a nearer surface hides the plane from the key view there
+    seen = observed(z, cam, [KeyView(key, zk)], depth_tol=0.05)
+    u = np.arange(W) + 0.5
+    x = (u - W / 2) / 30.0 * 5.0  # world x of each column on the plane
+    uk = (x - 4.0) / 5.0 * 30.0 + W / 2  # its column in the key view
+    expect = (uk >= 0) & (uk < 50)
+    assert (seen == expect[None, :]).all()
+    # two key views: the count adds up; min_views asks for both
+    both = observed(z, cam, [KeyView(key, zk), KeyView(cam, z)], 0.05, min_views=2)
+    assert (both == expect[None, :]).all()
+    assert view_count(np.full((3, 3), np.nan), [KeyView(cam, z)], 0.05).sum() == 0
+
+
+def test_unobserved_region_is_not_a_change():
+    """Path p1 is rendered at t1 where no after photo looked (its left part): the model renders
+    something there (a surface nearer than before) that no photo supports. Only the object
+    added where the after photo (the key view of p2) saw it is a change."""
+    cam_a, cam_b = _plane_camera(0.0), _plane_camera(4.0)
+    plane = np.full((H, W), 5.0, np.float32)
+    ids = {k: np.ones((H, W), np.int64) for k in
+           [("p1", "t0", 0), ("p1", "t1", 0), ("p2", "t0", 0), ("p2", "t1", 0)]}
+    depth = {k: plane.copy() for k in ids}
+    # the real added object: world x in [1.33, 2.67] at depth 4 (p1 columns 40-50, p2 10-20)
+    ids[("p1", "t1", 0)][10:25, 40:50] = 3
+    depth[("p1", "t1", 0)][10:25, 40:50] = 4.0
+    ids[("p2", "t1", 0)][10:25, 10:20] = 3
+    depth[("p2", "t1", 0)][10:25, 10:20] = 4.0
+    # an unconstrained blob of the model at t1 where only before photos looked
+    ids[("p1", "t1", 0)][10:25, 5:15] = 2
+    depth[("p1", "t1", 0)][10:25, 5:15] = 4.0
+    frames = {k: dict(depth=depth[k], camera=cam_a if k[0] == "p1" else cam_b) for k in ids}
+    keys = {("p1", 0): 0, ("p2", 0): 1}
+    o = CompareOptions(min_area=4, observed_min_views=1)
+    _, blind = compare_paths(ids, frames, o)
+    assert set(blind.loc[blind["changed"], "id"]) == {2, 3}  # without coverage: both
+    masks, df = compare_paths(ids, frames, o, keys=keys)
+    df = df.set_index("id")
+    assert df.loc[3, "changed"] and df.loc[3, "type"] == "added"
+    assert 2 not in df.index or not df.loc[2, "changed"]  # never judged: nothing saw it
+    m0, m1 = masks[("p1", 0)]
+    assert m1[10:25, 40:50].all() and not m1[10:25, 5:15].any() and not m0.any()
+
+
+def test_thin_depth_noise_is_not_evidence():
+    """A segment seen at one time only whose depth differs along thin streaks (a fitted
+    model's depth noise along texture edges) is not confirmed; a solid change is."""
+    o = CompareOptions(min_area=4)
+    ids0, z0 = _blank()
+    ids1, z1 = _blank()
+    ids0[:], ids1[:] = 1, 1
+    ids1[5:25, 5:25] = 2  # a piece of the background segmented apart at t1
+    z1[5:25:3, 5:25] = 4.0  # every third row nearer: 35 % of its pixels, 1 px wide
+    ids1[5:25, 35:55] = 3  # an object added at t1
+    z1[5:25, 35:55] = 4.0
+    st = pose_stats(ids0, ids1, o, depth0=z0, depth1=z1)
+    assert st[2]["candidate"] and not st[2]["confirmed"], st[2]
+    assert st[3]["confirmed"]
+    raw = pose_stats(ids0, ids1, dataclasses.replace(o, evidence_open=0.0), depth0=z0,
+                     depth1=z1)
+    assert raw[2]["confirmed"]  # the streaks alone pass a per-pixel fraction test
+
+
+def test_texture_only_change_needs_colour_and_a_missing_segment():
+    """With depth unchanged, a texture that differs at the two times confirms a candidate only
+    when its colours differ too and it is not a piece split off a segment that stays."""
+    rng = np.random.default_rng(5)
+    o = CompareOptions(min_area=4)
+    base = np.clip(0.2 + 0.6 * _smooth_texture(rng, (H, W), 1.0), 0, 1).astype(np.float32)
+    rgb0 = base.copy()
+    rgb1 = base.copy()
+    z = np.full((H, W), 5.0, np.float32)
+    ids0 = np.ones((H, W), np.int64)
+    ids1 = ids0.copy()
+    # (a) a patch of the background re-rendered with other detail, same colours, split off
+    #     the background segment at t1
+    rgb1[4:20, 4:24] = np.clip(0.2 + 0.6 * _smooth_texture(rng, (16, 20), 1.0), 0, 1)
+    ids1[4:20, 4:24] = 2
+    # (b) an object replaced by one of the same shape, other texture and colours
+    obj0 = np.clip(np.array([0.8, 0.3, 0.2]) * (0.4 + _smooth_texture(rng, (14, 18), 1.0)), 0, 1)
+    obj1 = np.clip(np.array([0.2, 0.4, 0.8]) * (0.4 + _smooth_texture(rng, (14, 18), 1.0)), 0, 1)
+    rgb0[22:36, 36:54], rgb1[22:36, 36:54] = obj0, obj1
+    ids0[22:36, 36:54], ids1[22:36, 36:54] = 3, 4
+    # (c) a patch re-rendered with other detail and other colours, split off the background
+    #     segment at t1 - but the depth says the surface is where it was
+    rgb1c, ids1c = rgb1.copy(), ids1.copy()
+    rgb1c[24:38, 4:24] = np.clip(np.array([0.2, 0.4, 0.9])
+                                 * (0.4 + _smooth_texture(rng, (14, 20), 1.0)), 0, 1)
+    ids1c[24:38, 4:24] = 5
+    st = pose_stats(ids0, ids1c, o, rgb0, rgb1c, z, z.copy())
+    assert st[3]["confirmed"] and st[4]["confirmed"]
+    assert st[2]["candidate"] and not st[2]["confirmed"]
+    assert st[5]["candidate"] and not st[5]["confirmed"]
+    # without depth there is no fragment rule: appearance alone decides (photo pairs)
+    assert pose_stats(ids0, ids1c, o, rgb0, rgb1c)[5]["confirmed"]
+    # without the colour requirement the re-rendered patch (a) passes on texture alone when it
+    # is not a piece of a staying segment (here: no depth, so no fragment rule)
+    loose = pose_stats(ids0, ids1, dataclasses.replace(o, texture_color_similarity=1.0),
+                       rgb0, rgb1)
+    strict = pose_stats(ids0, ids1, o, rgb0, rgb1)
+    assert loose[2]["confirmed"] and not strict[2]["confirmed"]

@@ -11,7 +11,10 @@ poses stage (``gdiff.sfm.run_poses``, source known), the 4D model is fitted with
 * eval views (novel, never trained on): render t=0 and t=1 at full size and compare with
   ``eval/before`` and ``eval/after``; also PSNR outside the ground-truth change mask (the
   unchanged background must look like the real image of that time, lighting included) and
-  the mean |render(t1) - render(t0)| inside vs outside the mask.
+  the mean |render(t1) - render(t0)| inside vs outside the mask; and PSNR split by whether a
+  pixel's surface point (from the rendered depth) lies in the view of some training camera of
+  that time (``psnr_covered``) or of none (``psnr_uncovered``, ``uncovered`` = its share):
+  before and after captures taken from other places leave parts seen at one time only.
 
 Usage::
 
@@ -76,9 +79,26 @@ def poses(work: Path, out: Path) -> Path:
     return pdir
 
 
+def covered(cam, depth: np.ndarray, train: list) -> np.ndarray:
+    """[H, W] bool: the pixel's surface point (camera-frame z ``depth`` [H, W]) projects inside
+    at least one camera of ``train`` (in front of it; occlusion not tested)."""
+    j, i = np.mgrid[:cam.height, :cam.width]
+    x = (i + 0.5 - cam.cx) / cam.fx * depth
+    y = (j + 0.5 - cam.cy) / cam.fy * depth
+    p = np.stack([x, y, depth, np.ones_like(depth)], -1).reshape(-1, 4) @ cam.c2w.T
+    hit = np.zeros(len(p), bool)
+    for c in train:
+        q = p @ c.w2c.T
+        z = np.where(q[:, 2] > 1e-6, q[:, 2], np.nan)
+        u, v = c.fx * q[:, 0] / z + c.cx, c.fy * q[:, 1] / z + c.cy
+        hit |= (u >= 0) & (u < c.width) & (v >= 0) & (v < c.height)
+    return hit.reshape(depth.shape)
+
+
 @torch.no_grad()
 def eval_views(model, cams_json: Path, scene: Path) -> pd.DataFrame:
     cams = load_cameras(cams_json)
+    train = {0: [c for c in cams if c.set == "before"], 1: [c for c in cams if c.set == "after"]}
     rows = []
     ev = {c.image.split("/")[-1]: c for c in cams if c.set == "eval_before"}
     for name, cam in sorted(ev.items()):
@@ -87,10 +107,15 @@ def eval_views(model, cams_json: Path, scene: Path) -> pd.DataFrame:
         r = {}
         for t, st in ((0, "before"), (1, "after")):
             gt = torch.from_numpy(read_image(scene / "eval" / st / name))
-            pred = render(model, [cam], float(t), render_mode="RGB")["rgb"][0].clamp(0, 1)
+            out = render(model, [cam], float(t), render_mode="RGB+ED")
+            pred = out["rgb"][0].clamp(0, 1)
             r[t] = pred
             row = {"view": name, "time": t, "psnr": float(psnr(pred, gt)),
                    "ssim": float(ssim(pred, gt))}
+            cov = torch.from_numpy(covered(cam, out["depth"][0, ..., 0].numpy(), train[t]))
+            row["uncovered"] = float((~cov).float().mean())
+            for key, sel in (("psnr_covered", cov), ("psnr_uncovered", ~cov)):
+                row[key] = float(psnr(pred[sel], gt[sel])) if sel.any() else float("nan")
             if mask is not None and (~mask).any():
                 keep = torch.from_numpy(~mask)
                 row["psnr_unchanged"] = float(psnr(pred[keep], gt[keep]))
@@ -102,12 +127,27 @@ def eval_views(model, cams_json: Path, scene: Path) -> pd.DataFrame:
     return pd.DataFrame(rows)
 
 
+def fitted_summary(fit_dir: Path) -> dict:
+    """The summary fields of :func:`fit_scene` for an existing fit (``--eval-only``)."""
+    model = load_model(fit_dir / "model.pt", "cpu")
+    q = pd.read_csv(fit_dir / "quality.csv")
+    w, h = model.meta["working_size"]
+    s = {"iterations": model.meta["iterations"], "n_gaussians": len(model), "width": w,
+         "height": h}
+    for t in (0, 1):
+        s[f"psnr_t{t}"] = float(q[q["time"] == t]["psnr"].mean())
+        s[f"ssim_t{t}"] = float(q[q["time"] == t]["ssim"].mean())
+    return s
+
+
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawTextHelpFormatter)
     p.add_argument("scenes", nargs="+")
     p.add_argument("--out", required=True)
     p.add_argument("--set", action="append", default=[], help="FitOptions override key=value")
     p.add_argument("--threads", type=int, default=0)
+    p.add_argument("--eval-only", action="store_true",
+                   help="score the existing <out>/<scene>/fit/model.pt instead of fitting")
     args = p.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s: %(message)s")
     if args.threads:
@@ -124,10 +164,16 @@ def main(argv=None) -> int:
         sdir = out / name
         pdir = poses(work, sdir)
         t0, c0, load0 = time.time(), resource.getrusage(resource.RUSAGE_SELF), os.getloadavg()[0]
-        s = fit_scene(work, pdir / "cameras.json", pdir / "points.ply", sdir / "fit", opts, "cpu")
+        if args.eval_only:
+            s = fitted_summary(sdir / "fit")
+        else:
+            s = fit_scene(work, pdir / "cameras.json", pdir / "points.ply", sdir / "fit", opts,
+                          "cpu")
         wall = time.time() - t0
         c1 = resource.getrusage(resource.RUSAGE_SELF)
         cpu = (c1.ru_utime + c1.ru_stime) - (c0.ru_utime + c0.ru_stime)
+        if args.eval_only:
+            wall = cpu = float("nan")
         model = load_model(sdir / "fit" / "model.pt", "cpu")
         ev = eval_views(model, pdir / "cameras.json", work)
         ev.to_csv(sdir / "eval_views.csv", index=False)
@@ -142,6 +188,8 @@ def main(argv=None) -> int:
             row[f"eval_ssim_t{t}"] = float(e["ssim"].mean())
             if "psnr_unchanged" in e:
                 row[f"eval_psnr_unchanged_t{t}"] = float(e["psnr_unchanged"].mean())
+            row[f"eval_uncovered_t{t}"] = float(e["uncovered"].mean())
+            row[f"eval_psnr_uncovered_t{t}"] = float(e["psnr_uncovered"].mean())
         if "diff_in" in ev:
             row["diff_in"] = float(ev["diff_in"].mean())
             row["diff_out"] = float(ev["diff_out"].mean())

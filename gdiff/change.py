@@ -12,8 +12,17 @@ For every pose of a path the ID maps at t=0 and t=1 (one shared ID space, see
   to light direction, colour and strength); untextured regions without depth fall back to
   per-pixel chromaticity. This rejects segments that only exist because a shadow or a
   highlight moved, and confirms a replaced object whose depth barely changed;
-* per ID, over all poses where it is visible, the share of confirmed candidates decides
-  (``vote_frac``): changed IDs are changed on every frame (temporal consistency);
+* renders of a fitted 4D model differ between the two times also where nothing changed, so
+  the evidence must be real: (a) with the training cameras (key views) only pixels whose
+  surface several photos of *each* time saw are compared (:mod:`gdiff.coverage`; elsewhere
+  the model is unconstrained at one time) and an ID mostly outside them is not judged at that
+  pose; (b) changed depth counts only in blobs wider than thin noise streaks
+  (``evidence_open``); (c) a texture difference confirms only when the colours differ too,
+  and not at all - with depth - for a piece split off a segment that stays at the other time
+  (a fragment of an unchanged surface) or for a partly disoccluded region (a surface revealed
+  by something that moved): there only a change of geometry shows a change;
+* per ID, over all poses where it is visible (and judged), the share of confirmed candidates
+  decides (``vote_frac``): changed IDs are changed on every frame (temporal consistency);
 * a changed ID is ``removed`` (seen at t0 only), ``added`` (t1 only) or ``moved`` (seen at both
   at different places, or a removed/added pair with the same appearance and size standing at
   different places - a removed/added pair at one place is a replacement and keeps its types).
@@ -67,9 +76,6 @@ class CompareOptions:
     evidence_open: changed-depth pixels count as evidence only inside blobs at least this
         fraction of the image's longer side wide (morphological opening); thinner structures
         (depth noise of a fitted model along texture edges and silhouettes) do not. 0 disables.
-    texture_scale: the texture test compares the two renders at this fraction of their
-        resolution (a fitted model renders the finest detail differently at the two times;
-        1 = full resolution).
     texture_color_similarity: a candidate confirmed by texture alone must also differ in
         colour: the Bhattacharyya coefficient of the chromaticity histograms of its region at
         the two times below this (1 disables this requirement).
@@ -91,15 +97,12 @@ class CompareOptions:
     same_similarity: float = 0.35
     min_texture: float = 0.03
     evidence_open: float = 0.02
-    texture_scale: float = 1.0
     texture_color_similarity: float = 0.85
     min_observed: float = 0.5
     observed_depth_tol: float = 0.05
     observed_min_views: int = 3
 
     def __post_init__(self):
-        if not 0 < self.texture_scale <= 1:
-            raise ConfigError("config key 'compare.texture_scale' must lie in (0, 1]")
         if self.evidence_open < 0 or self.observed_depth_tol <= 0 or self.observed_min_views < 1:
             raise ConfigError("config keys 'compare.evidence_open' (>= 0), "
                               "'compare.observed_depth_tol' (> 0) and "
@@ -186,15 +189,6 @@ def appearance_change(rgb0: np.ndarray, rgb1: np.ndarray, chroma_tol: float,
 # per-pose comparison and per-ID decision
 # ------------------------------------------------------------------------------------------
 
-def _rescale(rgb: np.ndarray, scale: float) -> np.ndarray:
-    """``rgb`` [H, W, 3] resized by ``scale`` (area averaging); unchanged for scale >= 1."""
-    if scale >= 1:
-        return rgb
-    H, W = rgb.shape[:2]
-    size = (max(8, int(round(W * scale))), max(8, int(round(H * scale))))
-    return cv2.resize(np.asarray(rgb, np.float32), size, interpolation=cv2.INTER_AREA)
-
-
 def _chroma_hist(rgb: np.ndarray | tuple, mask: np.ndarray, bins: int = 8) -> np.ndarray:
     """2-D histogram [bins, bins] of the grey-world chromaticity (r, g) of ``mask`` bool [H, W]
     in ``rgb`` (sRGB [H, W, 3], or its :func:`_normalised_chroma` pair, to reuse it)."""
@@ -236,6 +230,12 @@ def pose_stats(ids0: np.ndarray, ids1: np.ndarray, o: CompareOptions,
     observed at both times for less than ``min_observed`` is not judged at this pose
     (``observed`` False: no candidate, left out of the vote); otherwise its evidence is measured
     on the pixels observed at both times.
+
+    Texture-only confirmation also needs different colours (Bhattacharyya coefficient of the
+    region's chromaticity histograms < ``texture_color_similarity``) and, with depth, is not
+    used when half of the region lies, at the other time, on IDs that stay at this pose
+    (visible at both times with IoU >= ``presence_iou``), or when more than a quarter of it is
+    hidden at the other time behind a nearer surface (disoccluded).
     """
     has_depth = depth0 is not None and depth1 is not None
     has_rgb = rgb0 is not None and rgb1 is not None
@@ -258,17 +258,9 @@ def pose_stats(ids0: np.ndarray, ids1: np.ndarray, o: CompareOptions,
 
     def grads():
         if "g0" not in cache:
-            cache["g0"] = image_texture(_rescale(rgb0, o.texture_scale), o.min_texture)
-            cache["g1"] = image_texture(_rescale(rgb1, o.texture_scale), o.min_texture)
+            cache["g0"] = image_texture(rgb0, o.min_texture)
+            cache["g1"] = image_texture(rgb1, o.min_texture)
         return cache["g0"], cache["g1"]
-
-    def texture_similarity(region):
-        g0, g1 = grads()
-        if g0.grad.shape[:2] != region.shape:
-            small = cv2.resize(region.astype(np.float32), g0.grad.shape[1::-1],
-                               interpolation=cv2.INTER_AREA)
-            region = small >= 0.5
-        return region_similarity(g0, g1, region, o.min_texture)
 
     def points(time: int):
         """World points [H, W, 3] of the depth at ``time``, or None."""
@@ -319,6 +311,7 @@ def pose_stats(ids0: np.ndarray, ids1: np.ndarray, o: CompareOptions,
                 cand = False  # the model is not constrained there at one of the times
             region0, region1 = region0 & known, region1 & known
         evidence, sim, confirmed = float("nan"), float("nan"), bool(cand)
+        disoccluded = False
         if cand and (has_depth or has_rgb):
             region = region0 | region1
             if has_depth:
@@ -326,17 +319,22 @@ def pose_stats(ids0: np.ndarray, ids1: np.ndarray, o: CompareOptions,
                 # the instance (it may stand behind the newcomer): leave them out
                 near1, near0 = nearer()
                 region = (region0 & ~near1) | (region1 & ~near0)
-                if region.sum() < 0.25 * (region0 | region1).sum():
+                full = (region0 | region1).sum()
+                if region.sum() < 0.25 * full:
                     cand = confirmed = False  # mostly hidden at the other time: undecidable
+                # partly hidden: a surface revealed (or covered) by something that moved; next
+                # to the occluder's outline the two images show different things anyway, so
+                # only the depth can tell whether this instance itself changed
+                disoccluded = region.sum() < 0.75 * full
             if cand and has_depth:
                 evidence = float(ev_depth()[region].mean()) if region.any() else 0.0
             if cand and has_rgb:
-                sim = texture_similarity(region)
+                sim = region_similarity(*grads(), region, o.min_texture)
             if cand and has_depth and region.any():
                 # a piece split off a segment that stays at the other time (same place):
                 # the surface is still there, only a change of geometry shows a change
                 on_cont = ((region0 & region & cont1) | (region1 & region & cont0)).sum()
-                if on_cont >= 0.5 * region.sum():
+                if on_cont >= 0.5 * region.sum() or disoccluded:
                     sim = float("nan")
             if cand:
                 differs = sim < o.same_similarity

@@ -408,3 +408,30 @@ def test_texture_only_change_needs_colour_and_a_missing_segment():
                        rgb0, rgb1)
     strict = pose_stats(ids0, ids1, o, rgb0, rgb1)
     assert loose[2]["confirmed"] and not strict[2]["confirmed"]
+
+
+def test_surface_revealed_by_a_moved_object_is_not_added():
+    """An object leaves; the table behind it, rendered at t1 with other colours and detail
+    (the model saw it from few after photos), is segmented apart together with the object's
+    contact rim. It is not an added instance: where it is not hidden at t0 behind the object
+    the depth did not change; only the object is a change."""
+    rng = np.random.default_rng(7)
+    o = CompareOptions(min_area=4)
+    rgb0 = np.clip(0.2 + 0.6 * _smooth_texture(rng, (H, W), 1.0), 0, 1).astype(np.float32)
+    rgb1 = rgb0.copy()
+    z0 = np.full((H, W), 5.0, np.float32)
+    z1 = z0.copy()
+    ids0 = np.ones((H, W), np.int64)
+    ids1 = ids0.copy()
+    ids0[10:30, 18:32] = 3  # the object with its rim (at table depth) at t0
+    z0[10:30, 20:30] = 4.0
+    rgb0[10:30, 18:32] = np.clip(np.array([0.9, 0.3, 0.2])
+                                 * (0.4 + _smooth_texture(rng, (20, 14), 1.0)), 0, 1)
+    ids1[10:30, 18:32] = 4  # the revealed table, rendered differently
+    rgb1[10:30, 18:32] = np.clip(np.array([0.3, 0.5, 0.9])
+                                 * (0.4 + _smooth_texture(rng, (20, 14), 1.0)), 0, 1)
+    st = pose_stats(ids0, ids1, o, rgb0, rgb1, z0, z1)
+    assert st[3]["confirmed"]  # the object left: its depth changed
+    assert st[4]["candidate"] and not st[4]["confirmed"], st[4]
+    # judged on appearance alone (no depth) the revealed region would pass
+    assert pose_stats(ids0, ids1, o, rgb0, rgb1)[4]["confirmed"]

@@ -326,7 +326,7 @@ def test_parts_seen_at_one_time_only_keep_their_state_at_the_other(narrow_after,
     update moves the shared opacity up and the change term down, so those parts stay near
     their initial opacity at t=1."""
     s = narrow_after
-    opts = small_options(coarse_iters=60, fine_iters=60, densify_from=1000,
+    opts = small_options(coarse_iters=40, fine_iters=30, densify_from=1000,
                          time_min_views=min_views)
     fit_scene(s.dir, s.cameras, s.points, s.root / f"out{min_views}", opts, device="cpu")
     model = load_model(s.root / f"out{min_views}" / "model.pt", "cpu")
@@ -337,11 +337,11 @@ def test_parts_seen_at_one_time_only_keep_their_state_at_the_other(narrow_after,
     a0, a1 = r0["alpha"][..., 0][out], r1["alpha"][..., 0][out]
     diff = (r1["rgb"] - r0["rgb"]).abs().mean(-1)
     d_out, d_in = float(diff[out].mean()), float(diff[~out].mean())
-    assert float(a0.mean()) > 0.8  # the t=0 fit covers the border
-    if min_views:  # (measured: |alpha change| 0.01, colour change 0.014 vs 0.064 inside)
+    assert float(a0.mean()) > 0.75  # the t=0 fit covers the border
+    if min_views:  # (measured: |alpha change| 0.01, colour change 0.01 vs 0.06 inside)
         assert float((a1 - a0).abs().mean()) < 0.04, float((a1 - a0).abs().mean())
         assert d_out < 0.5 * d_in, (d_out, d_in)
-    else:  # the failure the gate prevents (measured: t=1 alpha 0.57 vs 0.89 at t=0)
+    else:  # the failure the gate prevents (measured: t=1 alpha 0.58 vs 0.88 at t=0)
         assert float(a1.mean()) < float(a0.mean()) - 0.2
         assert d_out > 2.0 * d_in, (d_out, d_in)
 

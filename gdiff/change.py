@@ -84,6 +84,9 @@ class CompareOptions:
         the evidence is measured on observed pixels only.
     observed_depth_tol: relative depth agreement for a key view to see a surface point.
     observed_min_views: key views of a time that must see a point for it to be observed.
+    observed_min_parallax: ... and two of them from directions at least this many degrees
+        apart (seen from one direction only, a surface's depth is not determined: a fitted
+        model may put it anywhere along the rays).
     """
 
     presence_iou: float = 0.3
@@ -101,8 +104,12 @@ class CompareOptions:
     min_observed: float = 0.5
     observed_depth_tol: float = 0.05
     observed_min_views: int = 3
+    observed_min_parallax: float = 10.0
 
     def __post_init__(self):
+        if not 0 <= self.observed_min_parallax < 180:
+            raise ConfigError("config key 'compare.observed_min_parallax' must lie in [0, 180) "
+                              "degrees")
         if self.evidence_open < 0 or self.observed_depth_tol <= 0 or self.observed_min_views < 1:
             raise ConfigError("config keys 'compare.evidence_open' (>= 0), "
                               "'compare.observed_depth_tol' (> 0) and "

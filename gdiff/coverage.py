@@ -33,39 +33,81 @@ class KeyView:
     depth: np.ndarray
 
 
-def view_count(points: np.ndarray, views: list[KeyView], depth_tol: float) -> np.ndarray:
+def _sees(P: np.ndarray, finite: np.ndarray, v: KeyView, depth_tol: float) -> np.ndarray:
+    """bool [N]: ``v`` sees the world points ``P`` [N, 3] (see :func:`view_count`)."""
+    c = v.camera
+    Q = (P - c.c2w[:3, 3]) @ c.c2w[:3, :3]  # world -> camera (rotation transposed)
+    z = Q[:, 2]
+    ok = finite & (z > 1e-9)
+    zs = np.where(ok, z, 1.0)
+    u = np.floor(c.fx * Q[:, 0] / zs + c.cx)
+    w = np.floor(c.fy * Q[:, 1] / zs + c.cy)
+    dz = np.asarray(v.depth)
+    ok &= (u >= 0) & (u < dz.shape[1]) & (w >= 0) & (w < dz.shape[0])
+    idx = np.flatnonzero(ok)
+    zk = dz[w[idx].astype(np.int64), u[idx].astype(np.int64)].astype(np.float64)
+    seen = np.zeros(len(P), bool)
+    seen[idx[np.isfinite(zk) & (zk > 0) & (np.abs(z[idx] - zk) <= depth_tol * np.abs(zk))]] = True
+    return seen
+
+
+def _rays(P: np.ndarray, v: KeyView) -> np.ndarray:
+    """Unit directions [N, 3] from the centre of ``v``'s camera to the points ``P`` [N, 3]."""
+    d = P - v.camera.c2w[:3, 3]
+    return d / np.maximum(np.linalg.norm(d, axis=1, keepdims=True), 1e-12)
+
+
+def view_count(points: np.ndarray, views: list[KeyView], depth_tol: float,
+               parallax: bool = False):
     """Number of ``views`` that see each world point, int [...] for ``points`` [..., 3].
 
     A view sees a point when it projects inside the view's image, in front of the camera, and
     the view's depth at that pixel (nearest pixel) agrees with the point's depth within
     ``depth_tol`` x the view's depth. Non-finite points are seen by no view.
+
+    With ``parallax`` also returns the widest angle (degrees, float [...]) between the rays of
+    two views that see the point (0 when fewer than two do): found by two sweeps (the view
+    farthest in angle from the first seeing view, then the view farthest from that one), which
+    is at least half the exact widest angle and usually equals it.
     """
     shape = points.shape[:-1]
     P = np.asarray(points, np.float64).reshape(-1, 3)
     finite = np.isfinite(P).all(1)
     count = np.zeros(len(P), np.int32)
+    seen = []
     for v in views:
-        c = v.camera
-        Q = (P - c.c2w[:3, 3]) @ c.c2w[:3, :3]  # world -> camera (rotation transposed)
-        z = Q[:, 2]
-        ok = finite & (z > 1e-9)
-        zs = np.where(ok, z, 1.0)
-        u = np.floor(c.fx * Q[:, 0] / zs + c.cx)
-        w = np.floor(c.fy * Q[:, 1] / zs + c.cy)
-        dz = np.asarray(v.depth)
-        ok &= (u >= 0) & (u < dz.shape[1]) & (w >= 0) & (w < dz.shape[0])
-        idx = np.flatnonzero(ok)
-        zk = dz[w[idx].astype(np.int64), u[idx].astype(np.int64)].astype(np.float64)
-        seen = np.isfinite(zk) & (zk > 0) & (np.abs(z[idx] - zk) <= depth_tol * np.abs(zk))
-        count[idx[seen]] += 1
-    return count.reshape(shape)
+        s = _sees(P, finite, v, depth_tol)
+        count += s
+        seen.append(s)
+    if not parallax:
+        return count.reshape(shape)
+    ref = np.full(P.shape, np.nan)
+    for v, s in zip(views, seen):  # sweep 0: the ray of the first view that sees the point
+        first = s & np.isnan(ref[:, 0])
+        ref[first] = _rays(P[first], v)
+    for _ in range(2):  # sweeps 1, 2: the ray farthest from the reference becomes the reference
+        best = np.full(len(P), 2.0)  # cosine of the widest angle so far
+        far = ref.copy()
+        for v, s in zip(views, seen):
+            d = _rays(P[s], v)
+            cos = (d * ref[s]).sum(1)
+            better = cos < best[s]
+            idx = np.flatnonzero(s)[better]
+            best[idx] = cos[better]
+            far[idx] = d[better]
+        ref = far
+    angle = np.degrees(np.arccos(np.clip(best, -1.0, 1.0)))
+    angle[count < 2] = 0.0
+    return count.reshape(shape), angle.reshape(shape)
 
 
 def observed(depth: np.ndarray, camera: Camera, views: list[KeyView], depth_tol: float = 0.05,
              min_views: int = 1, alpha: np.ndarray | None = None,
-             alpha_min: float = 0.5) -> np.ndarray:
+             alpha_min: float = 0.5, min_parallax: float = 0.0) -> np.ndarray:
     """bool [H, W]: pixels of a frame (z-depth [H, W], ``camera``) rendered at time t whose
-    surface at least ``min_views`` key views of time t see (see the module docstring).
+    surface at least ``min_views`` key views of time t see (see the module docstring), from
+    directions at least ``min_parallax`` degrees apart (a surface seen from one direction only
+    has an undetermined depth: the model may put it anywhere along the rays).
 
     With ``alpha`` (rendered opacity [H, W]) pixels below ``alpha_min`` are not observed
     (nothing was rendered there). With no views every pixel with a surface counts as observed
@@ -77,4 +119,8 @@ def observed(depth: np.ndarray, camera: Camera, views: list[KeyView], depth_tol:
         out &= np.asarray(alpha) >= alpha_min
     if not views:
         return out
-    return out & (view_count(world_points(z, camera), views, depth_tol) >= min_views)
+    P = world_points(z, camera)
+    if min_parallax > 0:
+        count, angle = view_count(P, views, depth_tol, parallax=True)
+        return out & (count >= min_views) & (angle >= min_parallax)
+    return out & (view_count(P, views, depth_tol) >= min_views)

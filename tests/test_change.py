@@ -319,6 +319,15 @@ def test_view_count_respects_frustum_and_occlusion():
     both = observed(z, cam, [KeyView(key, zk), KeyView(cam, z)], 0.05, min_views=2)
     assert (both == expect[None, :]).all()
     assert view_count(np.full((3, 3), np.nan), [KeyView(cam, z)], 0.05).sum() == 0
+    # parallax: a plane point straight ahead of cam, seen by cam and key; their rays differ
+    # by atan(4 / 5) = 38.7 degrees (a single direction would leave its depth undetermined)
+    plane = np.full((H, W), 5.0, np.float32)
+    views = [KeyView(cam, plane), KeyView(key, plane)]
+    n, ang = view_count(np.array([[0.0, 0.0, 5.0]]), views, 0.05, parallax=True)
+    assert n[0] == 2 and ang[0] == pytest.approx(np.degrees(np.arctan(4 / 5)), abs=1e-6)
+    wide = observed(plane, cam, views, 0.05, min_views=2, min_parallax=30.0)
+    narrow = observed(plane, cam, views, 0.05, min_views=2, min_parallax=45.0)
+    assert wide[H // 2, W // 2 + 5] and not narrow.any()
 
 
 def test_unobserved_region_is_not_a_change():
@@ -340,7 +349,7 @@ def test_unobserved_region_is_not_a_change():
     depth[("p1", "t1", 0)][10:25, 5:15] = 4.0
     frames = {k: dict(depth=depth[k], camera=cam_a if k[0] == "p1" else cam_b) for k in ids}
     keys = {("p1", 0): 0, ("p2", 0): 1}
-    o = CompareOptions(min_area=4, observed_min_views=1)
+    o = CompareOptions(min_area=4, observed_min_views=1, observed_min_parallax=0.0)
     _, blind = compare_paths(ids, frames, o)
     assert set(blind.loc[blind["changed"], "id"]) == {2, 3}  # without coverage: both
     masks, df = compare_paths(ids, frames, o, keys=keys)

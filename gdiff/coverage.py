@@ -52,9 +52,14 @@ def _sees(P: np.ndarray, finite: np.ndarray, v: KeyView, depth_tol: float) -> np
 
 
 def _rays(P: np.ndarray, v: KeyView) -> np.ndarray:
-    """Unit directions [N, 3] from the centre of ``v``'s camera to the points ``P`` [N, 3]."""
-    d = P - v.camera.c2w[:3, 3]
-    return d / np.maximum(np.linalg.norm(d, axis=1, keepdims=True), 1e-12)
+    """Unit directions float32 [N, 3] from the centre of ``v``'s camera to the points ``P``."""
+    d = (P - v.camera.c2w[:3, 3]).astype(np.float32)
+    n = np.sqrt(np.einsum("ij,ij->i", d, d))
+    return d / np.maximum(n, 1e-12)[:, None]
+
+
+#: points handled at once (bounds the memory of the per-view rays: views x CHUNK x 3 floats)
+CHUNK = 1 << 16
 
 
 def view_count(points: np.ndarray, views: list[KeyView], depth_tol: float,
@@ -72,33 +77,29 @@ def view_count(points: np.ndarray, views: list[KeyView], depth_tol: float,
     """
     shape = points.shape[:-1]
     P = np.asarray(points, np.float64).reshape(-1, 3)
-    finite = np.isfinite(P).all(1)
     count = np.zeros(len(P), np.int32)
-    seen = []
-    for v in views:
-        s = _sees(P, finite, v, depth_tol)
-        count += s
-        seen.append(s)
-    if not parallax:
-        return count.reshape(shape)
-    ref = np.full(P.shape, np.nan)
-    for v, s in zip(views, seen):  # sweep 0: the ray of the first view that sees the point
-        first = s & np.isnan(ref[:, 0])
-        ref[first] = _rays(P[first], v)
-    for _ in range(2):  # sweeps 1, 2: the ray farthest from the reference becomes the reference
-        best = np.full(len(P), 2.0)  # cosine of the widest angle so far
-        far = ref.copy()
-        for v, s in zip(views, seen):
-            d = _rays(P[s], v)
-            cos = (d * ref[s]).sum(1)
-            better = cos < best[s]
-            idx = np.flatnonzero(s)[better]
-            best[idx] = cos[better]
-            far[idx] = d[better]
-        ref = far
-    angle = np.degrees(np.arccos(np.clip(best, -1.0, 1.0)))
-    angle[count < 2] = 0.0
-    return count.reshape(shape), angle.reshape(shape)
+    angle = np.zeros(len(P), np.float32)
+    for a in range(0, len(P), CHUNK):
+        Pc = P[a:a + CHUNK]
+        finite = np.isfinite(Pc).all(1)
+        seen = np.stack([_sees(Pc, finite, v, depth_tol) for v in views])  # [V, n]
+        cnt = seen.sum(0)
+        count[a:a + CHUNK] = cnt
+        if not parallax or not views:
+            continue
+        rays = np.stack([_rays(Pc, v) for v in views])  # [V, n, 3]
+        cols = np.arange(len(Pc))
+        ref = rays[np.argmax(seen, 0), cols]  # the first view that sees each point
+        for _ in range(2):  # the ray farthest in angle from the reference becomes the reference
+            cos = np.where(seen, np.einsum("vnk,nk->vn", rays, ref), 2.0)
+            far = np.argmin(cos, 0)
+            ref = rays[far, cols]
+        best = cos[far, cols]
+        ang = np.degrees(np.arccos(np.clip(best, -1.0, 1.0)))
+        angle[a:a + CHUNK] = np.where(cnt >= 2, ang, 0.0)
+    if parallax:
+        return count.reshape(shape), angle.reshape(shape)
+    return count.reshape(shape)
 
 
 def observed(depth: np.ndarray, camera: Camera, views: list[KeyView], depth_tol: float = 0.05,

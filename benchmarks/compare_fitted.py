@@ -136,7 +136,14 @@ def instance_counts(changes_csv: Path, scene) -> dict:
     ch = pd.read_csv(changes_csv)
     counts = ch["type"].value_counts().to_dict()
     truth = pd.Series(scene.change_types).value_counts().to_dict()
+    inst = {}
+    if "instance" in ch:  # one row per object: the type of its largest piece
+        heads = ch[ch["id"] == ch["instance"]]
+        inst = {"instances": int(ch["instance"].nunique()),
+                **{f"inst_{t}": int((heads["type"] == t).sum())
+                   for t in ("added", "removed", "moved")}}
     return {"changed": len(ch), **{t: counts.get(t, 0) for t in ("added", "removed", "moved")},
+            **inst,
             "truth": len(scene.change_types),
             "truth_types": ",".join(f"{t}:{n}" for t, n in sorted(truth.items()))}
 

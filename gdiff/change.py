@@ -399,7 +399,8 @@ def decide(stats: list[tuple[object, dict[int, dict]]], o: CompareOptions) -> pd
     """Per-ID decision from the per-pose stats ``[(pose_name, pose_stats(...)), ...]``.
 
     Returns a DataFrame with columns id, changed, type, partner, n_t0, n_t1 (poses where seen
-    at each time), n_confirmed, first, last (pose names), area (mean pixels).
+    at each time), n_confirmed, first, last (pose names), area (mean pixels), instance (the
+    object a changed ID belongs to, see :func:`_group_instances`; 0 when unchanged).
     """
     acc: dict[int, dict] = defaultdict(lambda: dict(n0=0, n1=0, n=0, conf=0, poses=[],
                                                     area=[], hist=None, size=[], pos={}))
@@ -439,7 +440,46 @@ def decide(stats: list[tuple[object, dict[int, dict]]], o: CompareOptions) -> pd
                                      "n_confirmed", "first", "last", "area", "_hist", "_size",
                                      "_pos"])
     _pair_moved(df, o)
+    _group_instances(df)
     return df.drop(columns=["_hist", "_size", "_pos"])
+
+
+def _group_instances(df: pd.DataFrame) -> None:
+    """Column ``instance`` (in place): changed IDs that are pieces of one object share it.
+
+    Two changed IDs seen at the same time (both mostly at t0, or both mostly at t1) whose
+    footprints overlap in the world (not :func:`_apart`: the distance of their median world
+    points is below their mean size) are pieces of one object (a segmenter split it, or its
+    track broke); a moved pair is one object too. The instance is named by the ID of its
+    largest member (mean area); 0 for unchanged IDs.
+    """
+    df["instance"] = 0
+    ch = df.index[df["changed"]].tolist()
+    if not ch:
+        return
+    parent = {i: i for i in ch}
+
+    def root(i):
+        while parent[i] != i:
+            parent[i] = parent[parent[i]]
+            i = parent[i]
+        return i
+
+    side = {i: int(df.at[i, "n_t1"] > df.at[i, "n_t0"]) for i in ch}
+    by_id = {int(df.at[i, "id"]): i for i in ch}
+    for k, a in enumerate(ch):
+        partner = by_id.get(int(df.at[a, "partner"]))
+        if partner is not None:
+            parent[root(partner)] = root(a)
+        for b in ch[k + 1:]:
+            if side[a] == side[b] and not _apart(df.at[a, "_pos"], df.at[b, "_pos"]):
+                parent[root(b)] = root(a)
+    groups: dict[int, list[int]] = defaultdict(list)
+    for i in ch:
+        groups[root(i)].append(i)
+    for members in groups.values():
+        head = max(members, key=lambda i: df.at[i, "area"])
+        df.loc[members, "instance"] = int(df.at[head, "id"])
 
 
 def _median_position(by_dim: dict[int, list]) -> tuple[np.ndarray, float] | None:

@@ -112,7 +112,7 @@ def compare_paths(ids: dict[Key, np.ndarray], frames: dict[Key, dict] | None,
     ``{(path, i): time}`` of the path frames that are training cameras (key frames) of that
     time; with them only pixels a training photo of each time saw are compared
     (:mod:`gdiff.coverage`). Returns ({(path, i): (mask_t0, mask_t1)}, changes table: id,
-    changed, type, partner, n_t0, n_t1, n_confirmed, first, last, area).
+    changed, type, partner, n_t0, n_t1, n_confirmed, first, last, area, instance).
     """
     o = options or CompareOptions()
     get = frames if callable(frames) else (lambda k: (frames or {}).get(k, {}))
@@ -263,7 +263,8 @@ def compare(instances_dir, poses_json, out_dir, options: CompareOptions | None =
     Reads ``instances_dir/index.json`` (and through it the ID maps and the rendered EXR frames,
     for the depth evidence) and the key frames of ``poses_json`` (the training cameras: only
     pixels a photo of each time saw are compared, :mod:`gdiff.coverage`); writes ``out_dir/<path>/<t0|t1|union>/NNNNN.png``,
-    ``out_dir/changes.csv`` (id, type, partner, first/last pose, area, ...) and last
+    ``out_dir/changes.csv`` (id, type, partner, first/last pose, area, instance: the object a
+    changed ID is a piece of, ...) and last
     ``out_dir/keyframes.csv`` (path, frame, image, set, time, mask_t0, mask_t1, mask_union;
     mask paths relative to the parent of ``out_dir``, i.e. results/<scene>/).
     """
@@ -303,4 +304,5 @@ def compare(instances_dir, poses_json, out_dir, options: CompareOptions | None =
     write_csv(out_dir / "keyframes.csv", pd.DataFrame(rows, columns=[
         "path", "frame", "image", "set", "time", "mask_t0", "mask_t1", "mask_union"]))
     counts = df.loc[df["changed"], "type"].value_counts().to_dict()
-    return {"poses": len(masks), "changed": int(df["changed"].sum()), **counts}
+    return {"poses": len(masks), "changed": int(df["changed"].sum()),
+            "instances": int(df.loc[df["changed"], "instance"].nunique()), **counts}

@@ -444,3 +444,29 @@ def test_surface_revealed_by_a_moved_object_is_not_added():
     assert st[4]["candidate"] and not st[4]["confirmed"], st[4]
     # judged on appearance alone (no depth) the revealed region would pass
     assert pose_stats(ids0, ids1, o, rgb0, rgb1)[4]["confirmed"]
+
+
+def test_pieces_of_one_object_form_one_instance():
+    """A removed object segmented into two pieces (two IDs) is one instance; another removed
+    object elsewhere is a second one; the smaller object put in that one's place (a
+    replacement, seen at the other time) is a third."""
+    o = CompareOptions(min_area=4)
+    cam = _plane_camera(0.0)
+    stats = []
+    for k in range(3):
+        ids0, z0 = _blank()
+        ids1, z1 = _blank()
+        ids0[:], ids1[:] = 1, 1
+        ids0[10:30, 10:18], ids0[10:30, 18:26] = 2, 3  # one object, two pieces
+        z0[10:30, 10:26] = 4.0
+        ids0[10:30, 45:55] = 4  # another object
+        z0[10:30, 45:55] = 4.0
+        ids1[14:26, 47:53] = 5  # the replacement of 4, at t1
+        z1[14:26, 47:53] = 3.0
+        stats.append((k, pose_stats(ids0, ids1, o, depth0=z0, depth1=z1, focal=cam.fx,
+                                    camera=cam)))
+    df = decide(stats, o).set_index("id")
+    assert df.loc[[2, 3, 4, 5], "changed"].all()
+    assert df.loc[2, "instance"] == df.loc[3, "instance"] != df.loc[4, "instance"]
+    assert df.loc[5, "instance"] not in (df.loc[2, "instance"], df.loc[4, "instance"])
+    assert df.loc[1, "instance"] == 0

@@ -19,6 +19,9 @@ in neither training set) against ``eval/masks``:
    sweep of the probability map (the 0.5 default vs the best threshold, to check the claim
    that no per-scene threshold is needed).
 
+``--geometry-lr-scale`` and ``--plain-bce`` select the partition's training mode (joint
+fine-tuning of the fitted Gaussians, unweighted BCE) to compare with the defaults.
+
 Usage::
 
     python benchmarks/partition_quality.py --scene synth:demo --targets oracle --work /tmp/pq
@@ -156,6 +159,11 @@ def main(argv=None) -> int:
     ap.add_argument("--max-gaussians", type=int, default=30000)
     ap.add_argument("--iterations", type=int, default=600)
     ap.add_argument("--lambda-3d", type=float, default=None)
+    ap.add_argument("--geometry-lr-scale", type=float, default=None,
+                    help="partition geometry_lr_scale (0 = frozen geometry, the default)")
+    ap.add_argument("--plain-bce", action="store_true",
+                    help="partition balance_classes=False (the unweighted mean BCE)")
+    ap.add_argument("--tag", default="", help="suffix of the quality_<targets><tag>.json file")
     ap.add_argument("--device", default="cpu")
     args = ap.parse_args(argv)
 
@@ -195,6 +203,10 @@ def main(argv=None) -> int:
     opts = {"iterations": args.iterations}
     if args.lambda_3d is not None:
         opts["lambda_3d"] = args.lambda_3d
+    if args.geometry_lr_scale is not None:
+        opts["geometry_lr_scale"] = args.geometry_lr_scale
+    if args.plain_bce:
+        opts["balance_classes"] = False
     shutil.rmtree(res / "partition", ignore_errors=True)
     t = time.perf_counter()
     summary = train_partition(res / "fit" / "model.pt", res / "poses" / "cameras.json",
@@ -208,7 +220,7 @@ def main(argv=None) -> int:
     out = {"scene": name, "targets": args.targets, "fit": fit, "partition": summary,
            "eval": scores, "seconds": timing, "args": {k: str(v) for k, v in vars(args).items()},
            "torch_threads": torch.get_num_threads()}
-    write_json(args.work / name / f"quality_{args.targets}.json", out)
+    write_json(args.work / name / f"quality_{args.targets}{args.tag}.json", out)
     print(json.dumps({"scene": name, "targets": args.targets, "eval": scores,
                       "seconds": timing}, indent=1))
     return 0

@@ -18,6 +18,29 @@ the rendered logits are the blend of the per-Gaussian logits ``Conv(e_i)``. That
 per-Gaussian change probability ``softmax(Conv(e_i))[changed]`` is the quantity used to split
 the model into changed / unchanged Gaussians.
 
+Training
+--------
+Loss: ``lambda_2d`` x BCE(rendered map, compare-stage mask of the key view) + ``lambda_3d`` x
+L3d (kNN KL), plus the fit stage's L1 + L_TV when the geometry is fine-tuned too.
+
+* Other-time pixels left out (``ignore_other_time``): a key view of time t is supervised
+  with the compare stage's mask at t, except where only the mask at 1 - t is set. The 4D fit
+  often draws an object that appears (or disappears) with Gaussians that are visible at the
+  other time as the surface it covers (time-dependent opacity, colour, motion); one
+  time-independent label per Gaussian cannot be "changed" at t1 and "unchanged" at t0, and the
+  t0 views outvoted the t1 views: change maps were under-confident (synth demo with exact
+  masks: F1 0.76 at 0.5, 0.94 at 0.1; the Gaussians under missed pixels had 69 % of their
+  supervision "unchanged"). See :func:`ignore_weight`.
+* Optional class-balanced BCE (``balance_classes``, off by default: it raises recall but
+  spreads "changed" over boundary Gaussians), see :func:`bce_on_change_logit`.
+* Frozen geometry (``geometry_lr_scale`` = 0, default): the fitted model already minimises
+  L1 + L_TV, so only encodings and conv are trained; the rasterizer is then linear in the
+  features and each key view's blending weights are computed once (:func:`blend_weights`, a
+  sparse [H*W, N] matrix), and a step blends one change logit per Gaussian
+  (:func:`blended_change_logit`) instead of deforming the model and rasterizing colour +
+  encodings forward and backward. ``geometry_lr_scale`` > 0 fine-tunes the fitted Gaussians
+  jointly (the paper's total loss), rendering every step.
+
 Conventions: cameras are :class:`gdiff.cameras.Camera` (OpenCV axes, c2w camera-to-world,
 pixel centres at +0.5); time ``t`` in [0, 1] (before = 0, after = 1); probability maps are
 float32 [H, W] in [0, 1]; masks bool [H, W] (written as 8-bit PNG, 255 = changed).
@@ -47,7 +70,8 @@ class PartitionOptions:
     iterations: int = 600             # fine-tuning steps (one training image per step)
     encoding_dim: int = 16            # length of the per-Gaussian classification encoding
     lambda_2d: float = 1.0            # weight of the BCE between rendered and target masks
-    balance_classes: bool = True      # BCE = mean over changed + mean over unchanged pixels, / 2
+    ignore_other_time: bool = True    # leave pixels changed only at the other time out of the BCE
+    balance_classes: bool = False     # BCE = (mean over changed + mean over unchanged pixels) / 2
     lambda_3d: float = 2.0            # weight of the kNN KL regulariser L3d
     knn_k: int = 5                    # neighbours per sampled Gaussian in L3d
     knn_samples: int = 1000           # Gaussians sampled per L3d evaluation (m)
@@ -158,7 +182,8 @@ def mask_bce(logits: torch.Tensor, target: torch.Tensor, pos_fraction: float | N
 
 
 def bce_on_change_logit(z: torch.Tensor, target: torch.Tensor,
-                        pos_fraction: float | None = None) -> torch.Tensor:
+                        pos_fraction: float | None = None,
+                        weight: torch.Tensor | None = None) -> torch.Tensor:
     """BCE of ``sigmoid(z)`` against ``target`` (same shapes; 1 = changed), mean over pixels.
 
     With ``pos_fraction`` = f in (0, 1) every changed pixel is weighted ``0.5 / f`` and every
@@ -168,22 +193,44 @@ def bce_on_change_logit(z: torch.Tensor, target: torch.Tensor,
     views and unchanged in others is not decided by pixel counts alone. The weights have mean 1
     over the training set, so the loss keeps the scale of the plain BCE (and its balance with
     L3d). f outside (0, 1) (no changed or no unchanged pixel anywhere) gives the plain BCE.
+    ``weight`` (same shape, in [0, 1]; see :func:`ignore_weight`) multiplies every pixel's
+    term (0 = pixel left out); the mean is still over all pixels.
     """
     target = target.to(z.dtype)
-    if pos_fraction is None or not 0.0 < pos_fraction < 1.0:
-        return F.binary_cross_entropy_with_logits(z, target)
-    w = target * (0.5 / pos_fraction) + (1.0 - target) * (0.5 / (1.0 - pos_fraction))
+    w = None if weight is None else weight.to(z.dtype)
+    if pos_fraction is not None and 0.0 < pos_fraction < 1.0:
+        cw = target * (0.5 / pos_fraction) + (1.0 - target) * (0.5 / (1.0 - pos_fraction))
+        w = cw if w is None else w * cw
     return F.binary_cross_entropy_with_logits(z, target, weight=w)
 
 
-def changed_fraction(targets) -> float:
+def ignore_weight(own, other) -> np.ndarray:
+    """Per-pixel BCE weight of a key view: 0 where only the *other* time's mask is set.
+
+    ``own`` is the view's target (changed objects present at its time t), ``other`` the
+    compare stage's mask at 1 - t (both [H, W] in [0, 1]). Pixels in ``other`` but not in
+    ``own`` show, at time t, the surface where an object appears or disappears at 1 - t. The
+    4D fit often draws such an object with Gaussians that are visible at t as that surface
+    (through time-dependent opacity, colour or motion), and a Gaussian's change label does not
+    depend on time: calling those pixels unchanged would fight the other time's positive
+    supervision (on synth demo the Gaussians under missed changed pixels saw 69 % unchanged
+    supervision). They are left out: weight ``1 - other (1 - own)``, float32 [H, W].
+    """
+    own, other = np.asarray(own, np.float32), np.asarray(other, np.float32)
+    return (1.0 - other * (1.0 - own)).astype(np.float32)
+
+
+def changed_fraction(targets, weights=None) -> float:
     """Fraction of changed pixels (sum of soft target values / pixel count) over ``targets``
-    (an iterable of [H, W] tensors or arrays in [0, 1])."""
+    (an iterable of [H, W] tensors or arrays in [0, 1]); with ``weights`` (an iterable of the
+    same shapes, or of None) a weighted fraction, so ignored pixels do not count."""
     pos = tot = 0.0
-    for t in targets:
-        t = torch.as_tensor(t)
-        pos += float(t.double().sum())
-        tot += t.numel()
+    weights = weights if weights is not None else [None] * len(targets)
+    for t, w in zip(targets, weights):
+        t = torch.as_tensor(t).double()
+        w = torch.ones_like(t) if w is None else torch.as_tensor(w).double()
+        pos += float((t * w).sum())
+        tot += float(w.sum())
     return pos / tot if tot else 0.0
 
 
@@ -548,6 +595,11 @@ class KeyView:
     def target(self):
         return self.masks[f"t{int(round(self.time))}"]
 
+    @property
+    def other(self):
+        """The mask of the other time (what changed but is drawn at 1 - time)."""
+        return self.masks[f"t{1 - int(round(self.time))}"]
+
 
 KEYFRAME_COLUMNS = ("path", "frame", "image", "set", "time", "mask_t0", "mask_t1", "mask_union")
 
@@ -729,13 +781,15 @@ def fine_tune(pm: PartitionModel, data: list[dict], opts: PartitionOptions, ckdi
     computed once (:func:`blend_weights`) and a step blends one number per Gaussian (the
     change logit) instead of rasterizing colour and features. With ``geometry_lr_scale`` > 0
     the fitted parameters are fine-tuned too and every step rasterizes colour + encodings.
-    The BCE is class balanced (:func:`bce_on_change_logit`) unless ``opts.balance_classes``
-    is False; the changed-pixel fraction is taken over all ``data`` targets.
+    The BCE weighs each pixel by ``weight`` when a ``data`` item has one (see
+    :func:`ignore_weight`) and is class balanced (:func:`bce_on_change_logit`) with
+    ``opts.balance_classes``; the changed-pixel fraction is then taken over all targets.
 
     Args:
         pm: the model (modified in place; its device is used).
         data: one dict per training photo: ``camera`` (Camera), ``time`` (0/1), ``image``
-            [H, W, 3] float tensor (sRGB), ``target`` [H, W] float tensor in [0, 1].
+            [H, W, 3] float tensor (sRGB), ``target`` [H, W] float tensor in [0, 1] and
+            optionally ``weight`` [H, W] (per-pixel BCE weight, None = 1).
         opts: options (iterations, weights, learning rates, kNN settings, checkpointing).
         ckdir: checkpoint folder (``ckpt_NNNNNN.pt`` every ``checkpoint_every`` iterations and
             at the end, the two newest kept); training resumes from the newest one when its
@@ -779,8 +833,9 @@ def fine_tune(pm: PartitionModel, data: list[dict], opts: PartitionOptions, ckdi
             ck = None
     pm.train()
     frozen = opts.geometry_lr_scale <= 0
-    pos_fraction = (changed_fraction(v["target"] for v in data) if opts.balance_classes
-                    else None)
+    pos_fraction = (changed_fraction([v["target"] for v in data],
+                                     [v.get("weight") for v in data])
+                    if opts.balance_classes else None)
     opt = torch.optim.Adam(_param_groups(pm, opts, extent), eps=1e-15)
     if frozen:
         frozen_g, weights = _cache_weights(pm, data)
@@ -796,7 +851,7 @@ def fine_tune(pm: PartitionModel, data: list[dict], opts: PartitionOptions, ckdi
         if frozen:
             g = frozen_g[float(v["time"])]
             z = blended_change_logit(pm.head, weights[vi])
-            loss_bce = bce_on_change_logit(z, v["target"], pos_fraction)
+            loss_bce = bce_on_change_logit(z, v["target"], pos_fraction, v.get("weight"))
             loss_l1 = loss_tv = loss_bce.new_full((), float("nan"))  # constants: not computed
             loss = opts.lambda_2d * loss_bce
         else:
@@ -804,7 +859,8 @@ def fine_tune(pm: PartitionModel, data: list[dict], opts: PartitionOptions, ckdi
             r = render_features(g, pm.head.encoding, v["camera"], pm.background, with_rgb=True)
             loss_l1 = l1(r["rgb"], v["image"])
             loss_tv = _tv_loss(pm, opts.lambda_tv)
-            loss_bce = mask_bce(pm.head.classify(r["features"]), v["target"], pos_fraction)
+            loss_bce = bce_on_change_logit(change_logit(pm.head.classify(r["features"])),
+                                           v["target"], pos_fraction, v.get("weight"))
             loss = loss_l1 + loss_tv + opts.lambda_2d * loss_bce
         if opts.lambda_3d > 0 and it % opts.l3d_every == 0:
             s, nb = index.sample(g.means, rng=_view_rng(opts.seed, it, 1))
@@ -907,7 +963,10 @@ def train_partition(fit_model_path, cameras_json, keyframes_csv, scene_dir, out_
     views = read_key_views(keyframes_csv, cameras_json, scene_dir, max_side)
     data = [{"camera": v.camera, "time": v.time,
              "image": torch.from_numpy(_load_image(v.image, v.camera)).to(dev),
-             "target": torch.from_numpy(_load_mask(v.target, v.camera)).to(dev)} for v in views]
+             "target": torch.from_numpy(_load_mask(v.target, v.camera)).to(dev),
+             "weight": (torch.from_numpy(ignore_weight(_load_mask(v.target, v.camera),
+                                                       _load_mask(v.other, v.camera))).to(dev)
+                        if opts.ignore_other_time else None)} for v in views]
     head = ChangeHead(len(fit), opts.encoding_dim, opts.seed)
     bg = [1.0, 1.0, 1.0] if fo["background"] == "white" else None  # random/black: black
     meta = getattr(fit, "meta", None) or {}

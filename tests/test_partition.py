@@ -163,6 +163,133 @@ def test_features_are_alpha_blended_without_background_and_match_colour_render()
     np.testing.assert_allclose(out["rgb"], ref, atol=1e-5)
 
 
+def test_cached_blend_weights_reproduce_the_rasterizer():
+    """Frozen geometry: features blended with cached weights equal the rasterized features of
+    overlapping, partly transparent Gaussians, and the blended change logit equals the head
+    applied to the rasterized feature map (bias included where nothing is hit)."""
+    from gdiff.partition import (blend_weights, blended_change_logit, change_logit,
+                                 render_blended, render_features)
+
+    rng = np.random.default_rng(3)
+    n = 300
+    model = _static_model(rng.normal(scale=0.3, size=(n, 3)), rng.random((n, 3)), opacity=0.6,
+                          scale=0.06)
+    with torch.no_grad():  # varied opacities and anisotropic shapes
+        model.splats["opacities"].copy_(torch.tensor(rng.normal(size=n), dtype=torch.float32))
+        model.splats["scales"].add_(torch.tensor(rng.normal(scale=0.5, size=(n, 3)),
+                                                 dtype=torch.float32))
+    cam = _front_camera(48, 36)
+    g = model.at_time(0.0)
+    head = ChangeHead(n, 8, seed=1)
+    with torch.no_grad():
+        ref = render_features(g, head.encoding, cam, with_rgb=False)
+        bw = blend_weights(g, cam)
+        feats = render_blended(bw, head.encoding)
+        z = blended_change_logit(head, bw)
+    assert bw.pix.dtype == torch.int32 and len(bw.pix) > 5 * 48 * 36  # many layers per pixel
+    assert 0 < (ref["alpha"] > 0.5).float().mean() < 1  # hit and empty pixels both present
+    np.testing.assert_allclose(feats, ref["features"], atol=2e-5)
+    np.testing.assert_allclose(bw.alpha.reshape(36, 48), ref["alpha"], atol=2e-5)
+    with torch.no_grad():
+        zref = change_logit(head.classify(ref["features"]))
+    np.testing.assert_allclose(z, zref, atol=5e-5)
+
+
+def test_balanced_bce_is_mean_of_per_class_means():
+    from gdiff.partition import bce_on_change_logit, changed_fraction
+
+    z = torch.randn(6, 7)
+    target = torch.zeros(6, 7)
+    target[1:3, 2:4] = 1.0  # 4 of 42 pixels changed
+    f = changed_fraction([target])
+    assert f == pytest.approx(4 / 42)
+    per = torch.nn.functional.binary_cross_entropy_with_logits(z, target, reduction="none")
+    expect = 0.5 * per[target > 0].mean() + 0.5 * per[target == 0].mean()
+    assert bce_on_change_logit(z, target, f).item() == pytest.approx(expect.item(), rel=1e-5)
+    plain = per.mean().item()
+    assert bce_on_change_logit(z, target, None).item() == pytest.approx(plain, rel=1e-6)
+    assert bce_on_change_logit(z, target, 0.0).item() == pytest.approx(plain, rel=1e-6)
+    # mask_bce on two-class logits is the same loss on their difference
+    logits = torch.stack([torch.zeros_like(z), z], -1)
+    assert mask_bce(logits, target, f).item() == pytest.approx(expect.item(), rel=1e-5)
+
+
+def test_balanced_bce_keeps_minority_gaussians_confident():
+    """A changed Gaussian covering 5 changed pixels in one view and 10 pixels marked unchanged
+    in another (a mask that misses part of the object, or a boundary): with the plain mean BCE
+    its optimum is 5 / 15 = 0.33, below the 0.5 threshold, because changed pixels are rare;
+    the balanced BCE weighs the rare class up and keeps it changed, background unchanged."""
+    from gdiff.partition import BlendWeights, bce_on_change_logit, blended_change_logit, \
+        changed_fraction
+
+    def view(obj_pix):  # 100 pixels, one opaque Gaussian each: 1 = object, 0 = background
+        gid = [1 if p in obj_pix else 0 for p in range(100)]
+        return BlendWeights(torch.arange(100, dtype=torch.int32),
+                            torch.tensor(gid, dtype=torch.int32), torch.ones(100),
+                            torch.ones(100), 100, 1)
+
+    views = [view(range(5)), view(range(10, 20))]
+    targets = [torch.zeros(1, 100), torch.zeros(1, 100)]
+    targets[0][0, :5] = 1.0
+
+    def train(balanced):
+        head = ChangeHead(2, 4, seed=0)
+        opt = torch.optim.Adam(head.parameters(), lr=0.05)
+        f = changed_fraction(targets) if balanced else None
+        for _ in range(200):
+            loss = sum(bce_on_change_logit(blended_change_logit(head, v), t, f)
+                       for v, t in zip(views, targets))
+            opt.zero_grad()
+            loss.backward()
+            opt.step()
+        return head.gaussian_probability().detach()
+
+    plain, bal = train(False), train(True)
+    assert plain[1].item() == pytest.approx(1 / 3, abs=0.03)   # under-confident
+    assert bal[1] > 0.9 and bal[0] < 0.1                         # 100/105 at the optimum
+    assert plain[0] < 0.1
+
+
+def test_ignoring_other_time_pixels_keeps_reused_gaussians_changed():
+    """The 4D fit draws a new object (t=1) with Gaussian 1, which at t=0 is visible as part of
+    the table it will cover. Two t=1 views see it changed; four t=0 views see it in 10 pixels
+    that only the t=1 mask marks. Supervised there as unchanged it ends below 0.5 (20
+    changed vs 40 unchanged pixels); with those pixels left out it is changed, and the table
+    Gaussian 0 stays unchanged either way."""
+    from gdiff.partition import (BlendWeights, bce_on_change_logit, blended_change_logit,
+                                 ignore_weight)
+
+    def view(obj_pix):  # 100 pixels, one opaque Gaussian each: 1 = the object, 0 = table
+        gid = [1 if p in obj_pix else 0 for p in range(100)]
+        return BlendWeights(torch.arange(100, dtype=torch.int32),
+                            torch.tensor(gid, dtype=torch.int32), torch.ones(100),
+                            torch.ones(100), 100, 1)
+
+    obj = torch.zeros(1, 100)
+    obj[0, 40:50] = 1.0
+    views = [view(range(40, 50))] * 6
+    own = [obj, obj] + [torch.zeros(1, 100)] * 4             # t=1 views, then t=0 views
+    other = [torch.zeros(1, 100)] * 2 + [obj] * 4
+    weights = [torch.from_numpy(ignore_weight(o, x)) for o, x in zip(own, other)]
+    assert weights[2][0, 45] == 0 and weights[2][0, 5] == 1 and weights[0].min() == 1
+
+    def train(ignore):
+        head = ChangeHead(2, 4, seed=0)
+        opt = torch.optim.Adam(head.parameters(), lr=0.05)
+        for _ in range(150):
+            loss = sum(bce_on_change_logit(blended_change_logit(head, v), t,
+                                           weight=w if ignore else None)
+                       for v, t, w in zip(views, own, weights))
+            opt.zero_grad()
+            loss.backward()
+            opt.step()
+        return head.gaussian_probability().detach()
+
+    plain, ign = train(False), train(True)
+    assert plain[1] < 0.4 and ign[1] > 0.9, (plain, ign)
+    assert plain[0] < 0.1 and ign[0] < 0.1
+
+
 def test_change_map_union_split_and_save_load(tmp_path):
     """Two Gaussians labelled changed / unchanged by hand: the union map, per-time maps, the
     PLY split and a save/load round trip."""
@@ -337,7 +464,11 @@ def test_tiny_change_map_at_held_out_views_overlaps_ground_truth(tiny_partition,
     assert s["IoU"] > 0.2 and s["P"] > 0.6, s
 
 
-def test_resume_gives_the_same_model_as_an_uninterrupted_run(tiny_fit, tmp_path):
+@pytest.mark.parametrize("geometry_lr_scale", [0.0, 1.0], ids=["frozen", "joint"])
+def test_resume_gives_the_same_model_as_an_uninterrupted_run(tiny_fit, tmp_path,
+                                                            geometry_lr_scale):
+    """Both training modes: frozen geometry (cached blend weights) and joint fine-tuning of the
+    fitted Gaussians (which must then move)."""
     from gdiff.partition import (PartitionModel, _load_image, _load_mask, fine_tune,
                                  read_key_views)
     from gdiff.splat.model import load_model
@@ -348,7 +479,8 @@ def test_resume_gives_the_same_model_as_an_uninterrupted_run(tiny_fit, tmp_path)
     data = [{"camera": v.camera, "time": v.time,
              "image": torch.from_numpy(_load_image(v.image, v.camera)),
              "target": torch.from_numpy(_load_mask(v.target, v.camera))} for v in views]
-    opts = dict(checkpoint_every=3, log_every=1, l3d_every=1, knn_refresh=2, knn_samples=300)
+    opts = dict(checkpoint_every=3, log_every=1, l3d_every=1, knn_refresh=2, knn_samples=300,
+                geometry_lr_scale=geometry_lr_scale)
 
     def run(ckdir, iterations):
         fit = load_model(res / "fit" / "model.pt", "cpu")
@@ -369,6 +501,10 @@ def test_resume_gives_the_same_model_as_an_uninterrupted_run(tiny_fit, tmp_path)
     torch.testing.assert_close(b.head.conv.weight, a.head.conv.weight, atol=1e-5, rtol=1e-4)
     torch.testing.assert_close(b.fit.splats["means"], a.fit.splats["means"], atol=1e-6,
                                rtol=1e-5)
+    moved = (a.fit.splats["means"] - fresh.fit.splats["means"]).abs().max().item()
+    assert (moved > 0) == (geometry_lr_scale > 0), moved
+    l1_logged = np.isfinite([r["l1"] for r in rows_a])
+    assert l1_logged.all() if geometry_lr_scale > 0 else not l1_logged.any()
     assert [r["iteration"] for r in rows_b] == [r["iteration"] for r in rows_a]
     np.testing.assert_allclose([r["bce"] for r in rows_b], [r["bce"] for r in rows_a],
                                rtol=1e-4)

@@ -1,0 +1,79 @@
+"""Gaussian partition: learn which Gaussians belong to changed instances (paper Sec. "4D Gaussian
+partition"), so a change map can be rendered from any camera and time.
+
+Model
+-----
+Every Gaussian ``i`` carries a learnable classification encoding ``e_i`` (``encoding_dim`` = 16
+numbers, degree 0: no view dependence). The encodings are alpha-blended by the same rasterizer
+as the colour, *without* a background term, into a feature map ``F`` [H, W, 16]; a 1x1
+convolution ``Conv`` (16 -> 2 channels: unchanged, changed) gives the change logits.
+Two classes with a softmax (rather than one logit) so that the 3D regulariser is the KL
+divergence between class distributions, as in the paper; the change probability is
+``softmax(Conv(F))[changed] = sigmoid(z)`` with ``z = logit_changed - logit_unchanged``, and
+the 2D loss (the paper's BCE) is the binary cross-entropy of ``sigmoid(z)`` against the mask.
+
+Because ``Conv`` is affine, ``Conv(F) = sum_i w_i Conv(e_i) + (1 - A) b`` (``w_i`` blending
+weights, ``A = sum_i w_i`` the pixel's alpha, ``b`` the conv bias): where the surface is opaque
+the rendered logits are the blend of the per-Gaussian logits ``Conv(e_i)``. That is why the
+per-Gaussian change probability ``softmax(Conv(e_i))[changed]`` is the quantity used to split
+the model into changed / unchanged Gaussians.
+
+Training
+--------
+Loss: ``lambda_2d`` x BCE(rendered map, compare-stage mask of the key view) + ``lambda_3d`` x
+L3d (kNN KL), plus the fit stage's L1 + L_TV when the geometry is fine-tuned too.
+
+* Other-time pixels left out (``ignore_other_time``): a key view of time t is supervised
+  with the compare stage's mask at t, except where only the mask at 1 - t is set. The 4D fit
+  often draws an object that appears (or disappears) with Gaussians that are visible at the
+  other time as the surface it covers (time-dependent opacity, colour, motion); one
+  time-independent label per Gaussian cannot be "changed" at t1 and "unchanged" at t0, and the
+  t0 views outvoted the t1 views: change maps were under-confident (synth demo with exact
+  masks: F1 0.76 at 0.5, 0.94 at 0.1; the Gaussians under missed pixels had 69 % of their
+  supervision "unchanged"). See :func:`ignore_weight`.
+* Optional class-balanced BCE (``balance_classes``, off by default: it raises recall but
+  spreads "changed" over boundary Gaussians), see :func:`bce_on_change_logit`.
+* Frozen geometry (``geometry_lr_scale`` = 0, default): the fitted model already minimises
+  L1 + L_TV, so only encodings and conv are trained; the rasterizer is then linear in the
+  features and each key view's blending weights are computed once (:func:`blend_weights`, a
+  sparse [H*W, N] matrix), and a step blends one change logit per Gaussian
+  (:func:`blended_change_logit`) instead of deforming the model and rasterizing colour +
+  encodings forward and backward. ``geometry_lr_scale`` > 0 fine-tunes the fitted Gaussians
+  jointly (the paper's total loss), rendering every step.
+
+Modules: :mod:`.options` (``PartitionOptions``), :mod:`.head` (encodings + 1x1 conv),
+:mod:`.losses` (BCE, L3d), :mod:`.render` (rasterized features, cached blend weights),
+:mod:`.model` (``PartitionModel``, change maps, model.pt i/o), :mod:`.data` (key views),
+:mod:`.train` (``fine_tune``, ``train_partition``), :mod:`.export` (PLY split, key-pose maps),
+:mod:`.cli` (``gdiff change-map``). Their public names are importable from ``gdiff.partition``.
+
+Conventions: cameras are :class:`gdiff.cameras.Camera` (OpenCV axes, c2w camera-to-world,
+pixel centres at +0.5); time ``t`` in [0, 1] (before = 0, after = 1); probability maps are
+float32 [H, W] in [0, 1]; masks bool [H, W] (written as 8-bit PNG, 255 = changed).
+"""
+
+from .cli import change_map_main, pose_from_values
+from .data import KEYFRAME_COLUMNS, KeyView, _load_image, _load_mask, read_key_views
+from .export import (MIN_VISIBLE_OPACITY, overlay, split_gaussians, write_key_maps,
+                     write_split_ply)
+from .head import CHANGED, UNCHANGED, ChangeHead, change_logit, change_probability
+from .losses import (bce_on_change_logit, changed_fraction, ignore_weight, l3d_step, mask_bce,
+                     neighbour_disagreement, neighbour_kl)
+from .model import (FORMAT, VERSION, PartitionModel, load_partition_model, partition_blob,
+                    render_change_map, save_partition_model)
+from .options import PartitionOptions
+from .render import BlendWeights, blend_weights, blended_change_logit, render_blended, \
+    render_features
+from .train import fine_tune, run_key, train_partition
+
+__all__ = [
+    "CHANGED", "FORMAT", "KEYFRAME_COLUMNS", "MIN_VISIBLE_OPACITY", "UNCHANGED", "VERSION",
+    "BlendWeights", "ChangeHead", "KeyView", "PartitionModel", "PartitionOptions",
+    "bce_on_change_logit", "blend_weights", "blended_change_logit", "change_logit",
+    "change_map_main", "change_probability", "changed_fraction", "fine_tune", "ignore_weight",
+    "l3d_step", "load_partition_model", "mask_bce", "neighbour_disagreement", "neighbour_kl",
+    "overlay", "partition_blob", "pose_from_values", "read_key_views", "render_blended",
+    "render_change_map", "render_features", "run_key", "save_partition_model",
+    "split_gaussians", "train_partition", "write_key_maps", "write_split_ply",
+    "_load_image", "_load_mask",
+]

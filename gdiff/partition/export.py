@@ -1,0 +1,114 @@
+"""Outputs of the partition stage: changed / unchanged PLY split, change maps and overlays at
+the key poses with their scores.
+
+Conventions: see :mod:`gdiff.partition`.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+
+from .data import KeyView, _load_image, _load_mask
+from .model import PartitionModel, render_change_map
+
+
+MIN_VISIBLE_OPACITY = 0.005  # a Gaussian below this opacity at time t is absent at t
+
+
+@torch.no_grad()
+def split_gaussians(pm: PartitionModel, t: float, threshold: float = 0.5):
+    """Changed and unchanged Gaussians at time ``t`` (activated, deformed to ``t``).
+
+    A Gaussian is changed when its probability ``softmax(Conv(e))[changed]`` exceeds
+    ``threshold``; Gaussians whose opacity at ``t`` is below ``MIN_VISIBLE_OPACITY`` are absent
+    at ``t`` (e.g. a removed object's Gaussians after the change) and left out.
+    Returns (changed, unchanged) :class:`gdiff.splat.gaussians.Gaussians`.
+    """
+    g = pm.fit.at_time(float(t)).detach()
+    p = pm.gaussian_probability()
+    present = g.opacities >= MIN_VISIBLE_OPACITY
+    return g.subset((p > threshold) & present), g.subset((p <= threshold) & present)
+
+
+def write_split_ply(pm: PartitionModel, out_dir, threshold: float = 0.5) -> dict:
+    """Write ``changed_t0/_t1.ply``, ``unchanged_t0/_t1.ply`` (3DGS layout) and
+    ``changed.ply`` (the changed Gaussians present at t=0 followed by those present at t=1:
+    what was there and changed plus what is new), ``unchanged.ply`` (= ``unchanged_t0``).
+    Returns the Gaussian counts per file."""
+    from pathlib import Path
+
+    from ..splat.gaussians import Gaussians
+    from ..splat.ply import write_gaussians
+
+    out = Path(out_dir)
+    parts, counts = {}, {}
+    for t in (0, 1):
+        parts[f"changed_t{t}"], parts[f"unchanged_t{t}"] = split_gaussians(pm, t, threshold)
+    c0, c1 = parts["changed_t0"], parts["changed_t1"]
+    parts["changed"] = Gaussians(*(torch.cat([getattr(c0, k), getattr(c1, k)])
+                                   for k in ("means", "quats", "scales", "opacities", "sh")),
+                                 sh_degree=c0.sh_degree)
+    parts["unchanged"] = parts["unchanged_t0"]
+    for name, g in parts.items():
+        write_gaussians(out / f"{name}.ply", g)
+        counts[f"n_{name}"] = len(g)
+    return counts
+
+
+def overlay(image: np.ndarray, mask: np.ndarray, colour=(1.0, 0.15, 0.1), alpha: float = 0.5,
+            outline: np.ndarray | None = None) -> np.ndarray:
+    """The image [H, W, 3] (float sRGB) with ``mask`` [H, W] tinted in ``colour`` and its
+    outline drawn; ``outline`` (optional bool [H, W], e.g. a target mask) is drawn in green."""
+    import cv2
+
+    img = np.clip(np.asarray(image, np.float32), 0, 1).copy()
+    m = np.asarray(mask, bool)
+    img[m] = (1 - alpha) * img[m] + alpha * np.asarray(colour, np.float32)
+    for mm, col in ((m, colour), (outline, (0.1, 1.0, 0.2))):
+        if mm is None:
+            continue
+        cs, _ = cv2.findContours(np.asarray(mm, np.uint8), cv2.RETR_EXTERNAL,
+                                 cv2.CHAIN_APPROX_NONE)
+        cv2.drawContours(img, cs, -1, tuple(float(c) for c in col), 1)
+    return img
+
+
+def write_key_maps(pm: PartitionModel, views: list[KeyView], maps_dir):
+    """Render change maps at every key pose and score them against the compare-stage masks.
+
+    Writes, per key view ``<name>`` (``<path>_<frame>``): ``maps/{t0,t1,union}/<name>.png``
+    (binary masks, 255 = changed), ``maps/{t0,t1,union}_prob/<name>.png`` (probability x 255)
+    and ``maps/overlay/<name>.png`` (the photo with the union map in red and the compare
+    stage's union mask outlined in green). Returns a DataFrame with one row per view: name,
+    time, IoU of the map at the photo's time vs its target (``iou_own_time``) and of the union
+    map vs ``mask_union`` (``iou_union``), plus pixel F1 of the union.
+    """
+    from pathlib import Path
+
+    import pandas as pd
+
+    from ..io import write_image, write_mask
+    from ..log import progress
+    from ..metrics import pixel_scores
+
+    maps_dir = Path(maps_dir)
+    rows = []
+    for v in progress(views, desc="partition maps"):
+        r = render_change_map(pm, v.camera, None)
+        th = pm.threshold
+        for key, p in (("t0", r["prob_t0"]), ("t1", r["prob_t1"]), ("union", r["prob"])):
+            write_mask(maps_dir / key / f"{v.name}.png", p > th)
+            write_image(maps_dir / f"{key}_prob" / f"{v.name}.png",
+                        np.repeat(p[..., None], 3, axis=2))
+        own = _load_mask(v.target, v.camera) > 0.5
+        union_t = _load_mask(v.masks["union"], v.camera) > 0.5
+        photo = _load_image(v.image, v.camera)
+        write_image(maps_dir / "overlay" / f"{v.name}.png",
+                    overlay(photo, r["mask"], outline=union_t))
+        own_pred = r[f"prob_t{int(v.time)}"] > th
+        s_own, s_union = pixel_scores(own_pred, own), pixel_scores(r["mask"], union_t)
+        rows.append({"name": v.name, "image": str(v.image), "time": v.time,
+                     "iou_own_time": s_own["IoU"], "iou_union": s_union["IoU"],
+                     "f1_union": s_union["F1"]})
+    return pd.DataFrame(rows)

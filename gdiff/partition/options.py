@@ -1,0 +1,56 @@
+"""Options of the ``partition`` stage (config section ``partition``).
+
+Conventions: see :mod:`gdiff.partition`.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+
+log = logging.getLogger("gdiff.partition")
+
+
+@dataclass
+class PartitionOptions:
+    """Options of the ``partition`` stage (config section ``partition``)."""
+
+    iterations: int = 600             # fine-tuning steps (one training image per step)
+    encoding_dim: int = 16            # length of the per-Gaussian classification encoding
+    lambda_2d: float = 1.0            # weight of the BCE between rendered and target masks
+    ignore_other_time: bool = True    # leave pixels changed only at the other time out of the BCE
+    balance_classes: bool = False     # BCE = (mean over changed + mean over unchanged pixels) / 2
+    lambda_3d: float = 2.0            # weight of the kNN KL regulariser L3d
+    knn_k: int = 5                    # neighbours per sampled Gaussian in L3d
+    knn_samples: int = 1000           # Gaussians sampled per L3d evaluation (m)
+    l3d_every: int = 2                # evaluate L3d every this many iterations
+    knn_refresh: int = 200            # rebuild the KD-tree of centres every this many L3d calls
+    lr_encoding: float = 0.02         # Adam learning rate of the encodings
+    lr_head: float = 0.005            # Adam learning rate of the 1x1 convolution
+    geometry_lr_scale: float = 0.0    # x the fit's final learning rates; 0 = frozen geometry
+                                      # (blend weights cached per key view: fast), > 0 = joint
+                                      # fine-tuning with L1 + L_TV (renders every step)
+    lambda_tv: float | None = None    # weight of the HexPlane TV; None = the fit stage's value
+    threshold: float = 0.5            # probability above which a pixel / Gaussian is "changed"
+    max_side: int | None = None       # longest image side for training; None = the fit's, 0 = full
+    checkpoint_every: int = 500       # write a resumable checkpoint every this many steps
+    log_every: int = 50               # rows of train_log.csv
+    seed: int = 0
+
+    def __post_init__(self):
+        if self.iterations < 0:
+            raise ValueError("iterations must be >= 0")
+        if self.encoding_dim < 1:
+            raise ValueError("encoding_dim must be >= 1")
+        if self.knn_k < 1 or self.knn_samples < 1:
+            raise ValueError("knn_k and knn_samples must be >= 1")
+        if self.l3d_every < 1 or self.knn_refresh < 1:
+            raise ValueError("l3d_every and knn_refresh must be >= 1")
+        if not 0.0 < self.threshold < 1.0:
+            raise ValueError("threshold must lie in (0, 1)")
+        if self.lambda_2d < 0 or self.lambda_3d < 0:
+            raise ValueError("lambda_2d and lambda_3d must be >= 0")
+        if self.max_side is not None and self.max_side < 0:
+            raise ValueError("max_side must be >= 0 (0 = full resolution)")
+        if self.checkpoint_every < 1 or self.log_every < 1:
+            raise ValueError("checkpoint_every and log_every must be >= 1")

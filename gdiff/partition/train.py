@@ -1,0 +1,353 @@
+"""Training of the partition stage: ``fine_tune`` (losses, optimiser, checkpoints / resume) and
+``train_partition`` (the stage: inputs -> ``partition/`` outputs).
+
+Conventions: see :mod:`gdiff.partition`.
+"""
+
+from __future__ import annotations
+
+import logging
+
+import numpy as np
+import torch
+
+from ..knn import NeighbourIndex
+from .data import _load_image, _load_mask, read_key_views
+from .export import write_key_maps, write_split_ply
+from .head import ChangeHead, change_logit
+from .losses import bce_on_change_logit, changed_fraction, ignore_weight, neighbour_kl
+from .model import PartitionModel, partition_blob, save_partition_model
+from .options import PartitionOptions
+from .render import blend_weights, blended_change_logit, render_features
+
+log = logging.getLogger("gdiff.partition")
+
+
+def _fit_options(fit) -> dict:
+    """The fit stage's options as saved in ``model.meta`` (defaults of FitOptions if absent)."""
+    import dataclasses
+
+    from ..splat.train import FitOptions
+
+    saved = (getattr(fit, "meta", None) or {}).get("options") or {}
+    base = dataclasses.asdict(FitOptions())
+    return {**base, **{k: v for k, v in saved.items() if k in base}}
+
+
+def _param_groups(pm: PartitionModel, opts: PartitionOptions, extent: float) -> list[dict]:
+    """Adam groups: encodings, conv, and (unless ``geometry_lr_scale`` is 0) the fitted
+    parameters at the fit stage's final learning rates x ``geometry_lr_scale``."""
+    groups = [{"name": "encoding", "params": [pm.head.encoding], "lr": opts.lr_encoding},
+              {"name": "conv", "params": list(pm.head.conv.parameters()), "lr": opts.lr_head}]
+    s = opts.geometry_lr_scale
+    fit = pm.fit
+    if s <= 0:
+        fit.requires_grad_(False)
+        return groups
+    fo = _fit_options(fit)
+    lrs = {"means": fo["lr_means_final"] * extent, "scales": fo["lr_scales"],
+           "quats": fo["lr_quats"], "opacities": fo["lr_opacities"], "sh0": fo["lr_sh0"],
+           "shN": fo["lr_shN"]}
+    for name, p in fit.splats.items():
+        if name in lrs:
+            groups.append({"name": name, "params": [p], "lr": lrs[name] * s})
+        else:
+            p.requires_grad_(False)
+    if fit.deformation is not None:
+        groups.append({"name": "grid", "params": fit.deformation.grid_parameters(),
+                       "lr": fo["lr_grid_final"] * s})
+        groups.append({"name": "deform", "params": fit.deformation.mlp_parameters(),
+                       "lr": fo["lr_deform_final"] * extent * s})
+    return groups
+
+
+def _tv_loss(pm: PartitionModel, lambda_tv: float | None) -> torch.Tensor:
+    """L_TV: the fit stage's grid regularisers of the deformation field (HexPlane TV, time
+    smoothness, time L1) with its weights; ``lambda_tv`` overrides the TV weight. 0 for a
+    static model."""
+    d = pm.fit.deformation
+    if d is None or not pm.fit.deforming:
+        return pm.background.new_zeros(())
+    fo = _fit_options(pm.fit)
+    r = d.regularizers()
+    w_tv = fo["plane_tv_weight"] if lambda_tv is None else lambda_tv
+    return (w_tv * r["plane_tv"] + fo["time_smooth_weight"] * r["time_smooth"]
+            + fo["time_l1_weight"] * r["time_l1"])
+
+
+def _latest_checkpoint(ckdir):
+    from pathlib import Path
+
+    files = sorted(Path(ckdir).glob("ckpt_*.pt"))
+    return files[-1] if files else None
+
+
+# options that do not change the result: a checkpoint stays valid when they differ
+_NON_RESULT_OPTIONS = ("iterations", "checkpoint_every", "log_every")
+
+
+def run_key(opts: PartitionOptions, **inputs) -> dict:
+    """What a checkpoint must match to be resumed from: the options that shape the result and
+    fingerprints of the inputs (``inputs``: name -> str)."""
+    import dataclasses
+
+    d = {k: v for k, v in dataclasses.asdict(opts).items() if k not in _NON_RESULT_OPTIONS}
+    return {**d, **{k: str(v) for k, v in inputs.items()}}
+
+
+def _save_checkpoint(ckdir, it, pm, opt, index, rows, opts, key) -> None:
+    from pathlib import Path
+
+    from ..io import atomic_path
+
+    ckdir = Path(ckdir)
+    blob = {"iteration": it, "pmodel": partition_blob(pm, opts), "optimizer": opt.state_dict(),
+            "index": index.state_dict(), "log": rows, "key": key}
+    with atomic_path(ckdir / f"ckpt_{it:06d}.pt") as tmp:
+        torch.save(blob, tmp)
+    for old in sorted(ckdir.glob("ckpt_*.pt"))[:-2]:  # keep the two newest
+        old.unlink(missing_ok=True)
+
+
+def _view_rng(seed: int, it: int, purpose: int) -> np.random.Generator:
+    """Per-iteration random generator: training is reproducible and resumes exactly."""
+    return np.random.default_rng([int(seed), int(it), int(purpose)])
+
+
+def fine_tune(pm: PartitionModel, data: list[dict], opts: PartitionOptions, ckdir=None,
+              extent: float = 1.0, key: dict | None = None) -> list[dict]:
+    """Optimise ``pm`` on ``data``: L = L1 + L_TV + lambda_2d BCE + lambda_3d L3d.
+
+    With ``opts.geometry_lr_scale`` = 0 (default) the fitted Gaussians are frozen: L1 and L_TV
+    are then constants and are skipped, the blending weights of every training view are
+    computed once (:func:`blend_weights`) and a step blends one number per Gaussian (the
+    change logit) instead of rasterizing colour and features. With ``geometry_lr_scale`` > 0
+    the fitted parameters are fine-tuned too and every step rasterizes colour + encodings.
+    The BCE weighs each pixel by ``weight`` when a ``data`` item has one (see
+    :func:`ignore_weight`) and is class balanced (:func:`bce_on_change_logit`) with
+    ``opts.balance_classes``; the changed-pixel fraction is then taken over all targets.
+
+    Args:
+        pm: the model (modified in place; its device is used).
+        data: one dict per training photo: ``camera`` (Camera), ``time`` (0/1), ``image``
+            [H, W, 3] float tensor (sRGB), ``target`` [H, W] float tensor in [0, 1] and
+            optionally ``weight`` [H, W] (per-pixel BCE weight, None = 1).
+        opts: options (iterations, weights, learning rates, kNN settings, checkpointing).
+        ckdir: checkpoint folder (``ckpt_NNNNNN.pt`` every ``checkpoint_every`` iterations and
+            at the end, the two newest kept); training resumes from the newest one when its
+            iteration is <= ``opts.iterations`` and its ``key`` matches.
+        extent: scene extent (world units) scaling the position / deformation learning rates.
+        key: :func:`run_key` of this run (default: from ``opts`` alone); a checkpoint with
+            another key (other options or inputs) is ignored with a warning.
+    Returns:
+        the training log: one dict per ``log_every`` iterations (iteration, loss terms, seconds).
+    Raises:
+        gdiff.errors.TrainingError: the loss became NaN/inf (names iteration and checkpoint).
+    """
+    import time as _time
+    from pathlib import Path
+
+    from ..errors import TrainingError
+    from ..log import progress
+    from ..splat.losses import l1
+
+    if not data:
+        raise ValueError("no training views")
+    index = NeighbourIndex(opts.knn_k, opts.knn_samples, opts.knn_refresh, opts.seed)
+    start, rows = 0, []
+    key = run_key(opts) if key is None else key
+    ck = _latest_checkpoint(ckdir) if ckdir is not None else None
+    if ck is not None:
+        try:
+            blob = torch.load(ck, map_location="cpu", weights_only=True)
+        except Exception as e:  # written atomically, so only a foreign/corrupt file
+            log.warning("ignoring unreadable checkpoint %s (%s)", ck, e)
+            blob = {"iteration": -1}
+        if blob.get("key") != key or blob["iteration"] < 0:
+            log.warning("checkpoint %s is from other options or inputs; starting afresh", ck)
+            ck = None
+        elif blob["iteration"] <= opts.iterations:
+            _load_state(pm, blob["pmodel"])
+            start, rows = int(blob["iteration"]), list(blob["log"])
+            index.load_state_dict(blob["index"])
+            log.info("resuming partition training from %s (iteration %d)", ck, start)
+        else:
+            ck = None
+    pm.train()
+    frozen = opts.geometry_lr_scale <= 0
+    pos_fraction = (changed_fraction([v["target"] for v in data],
+                                     [v.get("weight") for v in data])
+                    if opts.balance_classes else None)
+    opt = torch.optim.Adam(_param_groups(pm, opts, extent), eps=1e-15)
+    if frozen:
+        frozen_g, weights = _cache_weights(pm, data)
+    if ck is not None:
+        opt.load_state_dict(blob["optimizer"])
+    last_ck = str(ck) if ck is not None else "none"
+    acc = {"l1": 0.0, "tv": 0.0, "bce": 0.0, "l3d": 0.0, "n3d": 0}
+    t0 = _time.perf_counter()
+    for it in progress(range(start, opts.iterations), desc="partition", initial=start,
+                       total=opts.iterations):
+        vi = int(_view_rng(opts.seed, it, 0).integers(len(data)))
+        v = data[vi]
+        if frozen:
+            g = frozen_g[float(v["time"])]
+            z = blended_change_logit(pm.head, weights[vi])
+            loss_bce = bce_on_change_logit(z, v["target"], pos_fraction, v.get("weight"))
+            loss_l1 = loss_tv = loss_bce.new_full((), float("nan"))  # constants: not computed
+            loss = opts.lambda_2d * loss_bce
+        else:
+            g = pm.fit.at_time(float(v["time"]))
+            r = render_features(g, pm.head.encoding, v["camera"], pm.background, with_rgb=True)
+            loss_l1 = l1(r["rgb"], v["image"])
+            loss_tv = _tv_loss(pm, opts.lambda_tv)
+            loss_bce = bce_on_change_logit(change_logit(pm.head.classify(r["features"])),
+                                           v["target"], pos_fraction, v.get("weight"))
+            loss = loss_l1 + loss_tv + opts.lambda_2d * loss_bce
+        if opts.lambda_3d > 0 and it % opts.l3d_every == 0:
+            s, nb = index.sample(g.means, rng=_view_rng(opts.seed, it, 1))
+            loss_3d = neighbour_kl(pm.head.gaussian_logits(), s, nb)
+            loss = loss + opts.lambda_3d * loss_3d
+            acc["l3d"] += loss_3d.item()
+            acc["n3d"] += 1
+        if not torch.isfinite(loss):
+            raise TrainingError(
+                f"partition training diverged: loss is {loss.item()} at iteration {it} "
+                f"(L1 {loss_l1.item():.4g}, BCE {loss_bce.item():.4g}); last checkpoint: "
+                f"{last_ck}. Lower partition.lr_encoding / lr_head / geometry_lr_scale and "
+                "rerun (training resumes from the checkpoint)")
+        opt.zero_grad(set_to_none=True)
+        loss.backward()
+        opt.step()
+        acc["l1"] += loss_l1.item()
+        acc["tv"] += loss_tv.item()
+        acc["bce"] += loss_bce.item()
+        done = it + 1
+        if done % opts.log_every == 0 or done == opts.iterations:
+            n = done - (rows[-1]["iteration"] if rows else 0)
+            rows.append({"iteration": done, "l1": acc["l1"] / n, "tv": acc["tv"] / n,
+                         "bce": acc["bce"] / n,
+                         "l3d": acc["l3d"] / acc["n3d"] if acc["n3d"] else float("nan"),
+                         "seconds": _time.perf_counter() - t0})
+            acc = {"l1": 0.0, "tv": 0.0, "bce": 0.0, "l3d": 0.0, "n3d": 0}
+        if ckdir is not None and (done % opts.checkpoint_every == 0 or done == opts.iterations):
+            _save_checkpoint(ckdir, done, pm, opt, index, rows, opts, key)
+            last_ck = str(Path(ckdir) / f"ckpt_{done:06d}.pt")
+    pm.eval()
+    return rows
+
+
+def _cache_weights(pm: PartitionModel, data: list[dict]):
+    """Frozen geometry: the activated Gaussians per training time (no grad) and the
+    :class:`BlendWeights` of every view in ``data`` (same order)."""
+    import time as _time
+
+    from ..log import progress
+
+    t0 = _time.perf_counter()
+    with torch.no_grad():
+        gs = {t: pm.fit.at_time(t) for t in sorted({float(v["time"]) for v in data})}
+    weights = [blend_weights(gs[float(v["time"])], v["camera"])
+               for v in progress(data, desc="partition weights")]
+    log.info("blend weights of %d views: %.0f MB, %.1f s", len(data),
+             sum(w.nbytes for w in weights) / 2**20, _time.perf_counter() - t0)
+    return gs, weights
+
+
+def _load_state(pm: PartitionModel, blob: dict) -> None:
+    """Copy fitted parameters, encodings and head from a :func:`partition_blob` into ``pm``."""
+    with torch.no_grad():
+        pm.fit.load_state_dict(blob["fit"]["state_dict"])
+        pm.head.load_state_dict(blob["head"])
+
+
+def train_partition(fit_model_path, cameras_json, keyframes_csv, scene_dir, out_dir,
+                    options: PartitionOptions | None = None, device="auto") -> dict:
+    """The ``partition`` stage: fine-tune the fitted 4D model with change encodings.
+
+    Args:
+        fit_model_path: ``results/<scene>/fit/model.pt``.
+        cameras_json: ``results/<scene>/poses/cameras.json`` (key images and eval views).
+        keyframes_csv: ``results/<scene>/change/keyframes.csv`` (targets, see
+            :func:`read_key_views`).
+        scene_dir: the scene folder (photos).
+        out_dir: ``results/<scene>/partition/``; receives ``model.pt``, ``changed.ply``,
+            ``unchanged.ply`` (+ per-time ``changed_t0/_t1``, ``unchanged_t0/_t1`` PLYs),
+            ``probability.npy`` (per-Gaussian change probability [N] float32),
+            ``maps/`` (change maps at every key pose, see :func:`write_key_maps`),
+            ``keypose_scores.csv``, ``train_log.csv``, ``summary.json``; ``ckpt/`` while
+            training (removed when the stage completes; a rerun resumes from it).
+        options: :class:`PartitionOptions` (defaults when None).
+        device: ``auto``/``cpu``/``cuda``.
+    Returns:
+        summary dict (counts of Gaussians, mean key-pose IoU, seconds).
+    """
+    import shutil
+    import time as _time
+    from pathlib import Path
+
+    import pandas as pd
+
+    from ..cameras import Camera
+    from ..device import resolve_device
+    from ..io import write_csv, write_json
+    from ..splat.gaussians import camera_extent
+    from ..splat.model import load_model
+
+    opts = options or PartitionOptions()
+    dev = resolve_device(device)
+    out = Path(out_dir)
+    t_start = _time.perf_counter()
+    torch.manual_seed(opts.seed)
+    fit = load_model(fit_model_path, dev)
+    fo = _fit_options(fit)
+    max_side = fo["max_side"] if opts.max_side is None else opts.max_side
+    views = read_key_views(keyframes_csv, cameras_json, scene_dir, max_side)
+    data = [{"camera": v.camera, "time": v.time,
+             "image": torch.from_numpy(_load_image(v.image, v.camera)).to(dev),
+             "target": torch.from_numpy(_load_mask(v.target, v.camera)).to(dev),
+             "weight": (torch.from_numpy(ignore_weight(_load_mask(v.target, v.camera),
+                                                       _load_mask(v.other, v.camera))).to(dev)
+                        if opts.ignore_other_time else None)} for v in views]
+    head = ChangeHead(len(fit), opts.encoding_dim, opts.seed)
+    bg = [1.0, 1.0, 1.0] if fo["background"] == "white" else None  # random/black: black
+    meta = getattr(fit, "meta", None) or {}
+    cam0 = Camera(**meta["camera"]) if "camera" in meta else views[0].camera.with_pose(np.eye(4))
+    pm = PartitionModel(fit, head, cam0, bg, opts.threshold).to(dev)
+    extent = float(meta.get("extent") or camera_extent(
+        np.stack([v.camera.center for v in views])))
+    log.info("partition: %d Gaussians, %d key views, %d iterations on %s", len(fit), len(views),
+             opts.iterations, dev)
+    key = run_key(opts, fit=_sha1(fit_model_path), keyframes=_sha1(keyframes_csv),
+                  cameras=_sha1(cameras_json))
+    rows = fine_tune(pm, data, opts, out / "ckpt", extent, key)
+    t_train = _time.perf_counter() - t_start
+    save_partition_model(pm, out / "model.pt", opts)
+    write_csv(out / "train_log.csv", pd.DataFrame(rows))
+    prob = pm.gaussian_probability().detach().cpu().numpy().astype(np.float32)
+    from ..io import atomic_path
+
+    with atomic_path(out / "probability.npy") as tmp:
+        np.save(tmp, prob)
+    counts = write_split_ply(pm, out, opts.threshold)
+    scores = write_key_maps(pm, views, out / "maps")
+    write_csv(out / "keypose_scores.csv", scores)
+    summary = {"gaussians": len(fit), **counts, "key_views": len(views),
+               "iterations": opts.iterations,
+               "keypose_iou_own_time": float(np.nanmean(scores["iou_own_time"])),
+               "keypose_iou_union": float(np.nanmean(scores["iou_union"])),
+               "seconds_train": t_train, "seconds_total": _time.perf_counter() - t_start}
+    write_json(out / "summary.json", summary)
+    shutil.rmtree(out / "ckpt", ignore_errors=True)  # finished: nothing to resume
+    log.info("partition done: %s", summary)
+    return summary
+
+
+def _sha1(path) -> str:
+    import hashlib
+
+    h = hashlib.sha1()
+    with open(path, "rb") as f:
+        for block in iter(lambda: f.read(1 << 20), b""):
+            h.update(block)
+    return h.hexdigest()

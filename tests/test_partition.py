@@ -5,7 +5,6 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import torch
-from scipy.spatial import cKDTree
 
 from gdiff.knn import NeighbourIndex, knn_indices
 from gdiff.partition import (ChangeHead, PartitionOptions, change_probability, mask_bce,

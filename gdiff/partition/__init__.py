@@ -62,18 +62,18 @@ from .losses import (bce_on_change_logit, changed_fraction, ignore_weight, l3d_s
 from .model import (FORMAT, VERSION, PartitionModel, load_partition_model, partition_blob,
                     render_change_map, save_partition_model)
 from .options import PartitionOptions
-from .render import BlendWeights, blend_weights, blended_change_logit, render_blended, \
-    render_features
+from .render import (BlendWeights, blend_weights, blended_change_logit, change_logit_parts,
+                     render_blended, render_features)
 from .train import fine_tune, run_key, train_partition
 
 __all__ = [
     "CHANGED", "FORMAT", "KEYFRAME_COLUMNS", "MIN_VISIBLE_OPACITY", "UNCHANGED", "VERSION",
     "BlendWeights", "ChangeHead", "KeyView", "PartitionModel", "PartitionOptions",
     "bce_on_change_logit", "blend_weights", "blended_change_logit", "change_logit",
-    "change_map_main", "change_probability", "changed_fraction", "fine_tune", "ignore_weight",
-    "l3d_step", "load_partition_model", "mask_bce", "neighbour_disagreement", "neighbour_kl",
-    "overlay", "partition_blob", "pose_from_values", "read_key_views", "render_blended",
-    "render_change_map", "render_features", "run_key", "save_partition_model",
-    "split_gaussians", "train_partition", "write_key_maps", "write_split_ply",
-    "_load_image", "_load_mask",
+    "change_logit_parts", "change_map_main", "change_probability", "changed_fraction",
+    "fine_tune", "ignore_weight", "l3d_step", "load_partition_model", "mask_bce",
+    "neighbour_disagreement", "neighbour_kl", "overlay", "partition_blob", "pose_from_values",
+    "read_key_views", "render_blended", "render_change_map", "render_features", "run_key",
+    "save_partition_model", "split_gaussians", "train_partition", "write_key_maps",
+    "write_split_ply", "_load_image", "_load_mask",
 ]

@@ -27,9 +27,11 @@ class PartitionOptions:
     knn_refresh: int = 200            # rebuild the KD-tree of centres every this many L3d calls
     lr_encoding: float = 0.02         # Adam learning rate of the encodings
     lr_head: float = 0.005            # Adam learning rate of the 1x1 convolution
-    geometry_lr_scale: float = 0.0    # x the fit's final learning rates; 0 = frozen geometry
-                                      # (blend weights cached per key view: fast), > 0 = joint
-                                      # fine-tuning with L1 + L_TV (renders every step)
+    geometry_lr_scale: float = 1.0    # x the fit's final learning rates in the geometry phase
+    frozen_iterations: int = 400      # first steps with the fitted Gaussians frozen (cached blend
+                                      # weights: fast); later steps also fine-tune them with
+                                      # L1 + L_TV (render every step). >= iterations or
+                                      # geometry_lr_scale 0 = frozen throughout
     lambda_tv: float | None = None    # weight of the HexPlane TV; None = the fit stage's value
     threshold: float = 0.5            # probability above which a pixel / Gaussian is "changed"
     max_side: int | None = None       # longest image side for training; None = the fit's, 0 = full
@@ -52,5 +54,7 @@ class PartitionOptions:
             raise ValueError("lambda_2d and lambda_3d must be >= 0")
         if self.max_side is not None and self.max_side < 0:
             raise ValueError("max_side must be >= 0 (0 = full resolution)")
+        if self.frozen_iterations < 0 or self.geometry_lr_scale < 0:
+            raise ValueError("frozen_iterations and geometry_lr_scale must be >= 0")
         if self.checkpoint_every < 1 or self.log_every < 1:
             raise ValueError("checkpoint_every and log_every must be >= 1")

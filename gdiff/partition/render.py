@@ -141,11 +141,17 @@ def render_blended(bw: BlendWeights, values: torch.Tensor) -> torch.Tensor:
     return out.reshape((bw.height, bw.width) + tuple(values.shape[1:]))
 
 
-def blended_change_logit(head: "ChangeHead", bw: BlendWeights) -> torch.Tensor:
-    """The rendered change logit ``z = Conv(F)[changed] - Conv(F)[unchanged]`` [H, W] from cached
-    weights: the head is affine, so ``z = sum_i w_i (d . e_i) + b_d`` with ``d``, ``b_d`` the
-    differences of the conv's weight rows and biases (1 channel blended instead of D)."""
+def change_logit_parts(head: ChangeHead) -> tuple[torch.Tensor, torch.Tensor]:
+    """``(d . e_i for every Gaussian [N], b_d scalar)``: the head is affine, so the rendered
+    change logit ``z = Conv(F)[changed] - Conv(F)[unchanged]`` of features ``F = sum_i w_i e_i``
+    is ``sum_i w_i (d . e_i) + b_d`` (``d``, ``b_d`` the differences of the conv's weight rows
+    and biases): blending one number per Gaussian gives the same map as blending D."""
     w = head.conv.weight[:, :, 0, 0]
     d = w[CHANGED] - w[UNCHANGED]
-    b = head.conv.bias[CHANGED] - head.conv.bias[UNCHANGED]
-    return render_blended(bw, head.encoding @ d) + b
+    return head.encoding @ d, head.conv.bias[CHANGED] - head.conv.bias[UNCHANGED]
+
+
+def blended_change_logit(head: ChangeHead, bw: BlendWeights) -> torch.Tensor:
+    """The rendered change logit [H, W] from cached weights (see :func:`change_logit_parts`)."""
+    zg, b = change_logit_parts(head)
+    return render_blended(bw, zg) + b

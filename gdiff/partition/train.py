@@ -14,11 +14,11 @@ import torch
 from ..knn import NeighbourIndex
 from .data import _load_image, _load_mask, read_key_views
 from .export import write_key_maps, write_split_ply
-from .head import ChangeHead, change_logit
+from .head import ChangeHead
 from .losses import bce_on_change_logit, changed_fraction, ignore_weight, neighbour_kl
 from .model import PartitionModel, partition_blob, save_partition_model
 from .options import PartitionOptions
-from .render import blend_weights, blended_change_logit, render_features
+from .render import blend_weights, blended_change_logit, change_logit_parts, render_features
 
 log = logging.getLogger("gdiff.partition")
 
@@ -36,7 +36,9 @@ def _fit_options(fit) -> dict:
 
 def _param_groups(pm: PartitionModel, opts: PartitionOptions, extent: float) -> list[dict]:
     """Adam groups: encodings, conv, and (unless ``geometry_lr_scale`` is 0) the fitted
-    parameters at the fit stage's final learning rates x ``geometry_lr_scale``."""
+    parameters at the fit stage's final learning rates x ``geometry_lr_scale`` (they get no
+    gradient, so no update, during the frozen steps; the groups do not depend on
+    ``iterations``, so a run can be resumed with more steps)."""
     groups = [{"name": "encoding", "params": [pm.head.encoding], "lr": opts.lr_encoding},
               {"name": "conv", "params": list(pm.head.conv.parameters()), "lr": opts.lr_head}]
     s = opts.geometry_lr_scale
@@ -118,11 +120,14 @@ def fine_tune(pm: PartitionModel, data: list[dict], opts: PartitionOptions, ckdi
               extent: float = 1.0, key: dict | None = None) -> list[dict]:
     """Optimise ``pm`` on ``data``: L = L1 + L_TV + lambda_2d BCE + lambda_3d L3d.
 
-    With ``opts.geometry_lr_scale`` = 0 (default) the fitted Gaussians are frozen: L1 and L_TV
-    are then constants and are skipped, the blending weights of every training view are
-    computed once (:func:`blend_weights`) and a step blends one number per Gaussian (the
-    change logit) instead of rasterizing colour and features. With ``geometry_lr_scale`` > 0
-    the fitted parameters are fine-tuned too and every step rasterizes colour + encodings.
+    Two phases. Geometry frozen (the first ``frozen_iterations`` steps, all of them when
+    ``geometry_lr_scale`` is 0): L1 and L_TV are constants and skipped, the blending
+    weights of every training view are computed once (:func:`blend_weights`) and a step blends
+    one number per Gaussian (the change logit) instead of rasterizing; the encodings and conv
+    converge here. Joint (the steps after): the fitted parameters are
+    fine-tuned too (at ``geometry_lr_scale`` x the fit's final learning rates) and every step
+    rasterizes colour + change logit, so Gaussians straddling a changed object's outline can
+    adapt to the masks while L1 keeps the images.
     The BCE weighs each pixel by ``weight`` when a ``data`` item has one (see
     :func:`ignore_weight`) and is class balanced (:func:`bce_on_change_logit`) with
     ``opts.balance_classes``; the changed-pixel fraction is then taken over all targets.
@@ -174,12 +179,13 @@ def fine_tune(pm: PartitionModel, data: list[dict], opts: PartitionOptions, ckdi
         else:
             ck = None
     pm.train()
-    frozen = opts.geometry_lr_scale <= 0
+    # steps [0, frozen_until) keep the geometry (independent of ``iterations``: resumable)
+    frozen_until = opts.frozen_iterations if opts.geometry_lr_scale > 0 else opts.iterations
     pos_fraction = (changed_fraction([v["target"] for v in data],
                                      [v.get("weight") for v in data])
                     if opts.balance_classes else None)
     opt = torch.optim.Adam(_param_groups(pm, opts, extent), eps=1e-15)
-    if frozen:
+    if start < frozen_until:
         frozen_g, weights = _cache_weights(pm, data)
     if ck is not None:
         opt.load_state_dict(blob["optimizer"])
@@ -190,7 +196,7 @@ def fine_tune(pm: PartitionModel, data: list[dict], opts: PartitionOptions, ckdi
                        total=opts.iterations):
         vi = int(_view_rng(opts.seed, it, 0).integers(len(data)))
         v = data[vi]
-        if frozen:
+        if it < frozen_until:
             g = frozen_g[float(v["time"])]
             z = blended_change_logit(pm.head, weights[vi])
             loss_bce = bce_on_change_logit(z, v["target"], pos_fraction, v.get("weight"))
@@ -198,11 +204,14 @@ def fine_tune(pm: PartitionModel, data: list[dict], opts: PartitionOptions, ckdi
             loss = opts.lambda_2d * loss_bce
         else:
             g = pm.fit.at_time(float(v["time"]))
-            r = render_features(g, pm.head.encoding, v["camera"], pm.background, with_rgb=True)
+            # the head is affine: rasterize the per-Gaussian change logit (1 channel) next to
+            # the colour instead of the D-channel encodings, then add the bias difference
+            zg, bias = change_logit_parts(pm.head)
+            r = render_features(g, zg[:, None], v["camera"], pm.background, with_rgb=True)
             loss_l1 = l1(r["rgb"], v["image"])
             loss_tv = _tv_loss(pm, opts.lambda_tv)
-            loss_bce = bce_on_change_logit(change_logit(pm.head.classify(r["features"])),
-                                           v["target"], pos_fraction, v.get("weight"))
+            loss_bce = bce_on_change_logit(r["features"][..., 0] + bias, v["target"],
+                                           pos_fraction, v.get("weight"))
             loss = loss_l1 + loss_tv + opts.lambda_2d * loss_bce
         if opts.lambda_3d > 0 and it % opts.l3d_every == 0:
             s, nb = index.sample(g.means, rng=_view_rng(opts.seed, it, 1))

@@ -39,7 +39,7 @@ Usage::
     python benchmarks/partition_quality.py --scene /work/shared/scenes/bench_desk \
         --targets pair --work /tmp/pq
 
-Writes ``<work>/<name>/quality.json`` and prints it. Timings are wall-clock seconds.
+Writes ``<work>/<name>/quality_<targets><tag>.json`` and prints it. Timings are wall-clock seconds.
 """
 
 from __future__ import annotations

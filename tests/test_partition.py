@@ -459,10 +459,11 @@ def test_tiny_change_map_at_held_out_views_overlaps_ground_truth(tiny_partition,
         assert r["mask"].shape == gt.shape
         counts += confusion(r["mask"], gt)
     s = scores_from_counts(*counts)
-    # measured IoU 0.81 / P 0.95 / R 0.85 (pooled over the 3 eval views; 0.74 / 0.96 / 0.76
-    # when the other time's changed pixels are supervised as unchanged); an untrained head
-    # predicts nothing (IoU 0) and a random split IoU ~0.04 (changed fraction)
-    assert s["IoU"] > 0.6 and s["P"] > 0.8 and s["R"] > 0.7, s
+    # measured IoU 0.89 / P 0.98 / R 0.91 (pooled over the 3 eval views; 0.81 / 0.95 / 0.85
+    # with the geometry frozen throughout, 0.74 / 0.96 / 0.76 frozen and with the other time's
+    # changed pixels supervised as unchanged); an untrained head predicts nothing (IoU 0) and
+    # a random split IoU ~0.04 (changed fraction)
+    assert s["IoU"] > 0.7 and s["P"] > 0.85 and s["R"] > 0.75, s
     # the joint phase moved the fitted Gaussians a little (final fit learning rates)
     from gdiff.splat.model import load_model
 

@@ -139,8 +139,9 @@ def test_opacity_reset_caps_every_time_and_stats_skip_absent_gaussians():
 
 def test_view_counts_per_time_follow_clones_splits_and_pruning():
     """``seen`` counts the views of each time in which a Gaussian projects into the image (any
-    opacity; with centres given, its centre must be inside); clones and split children inherit their parent's counts, pruned rows go, and
-    a refinement keeps the counts (only the window statistics restart)."""
+    opacity; with centres given, its centre must be inside); clones and split children
+    inherit their parent's counts, pruned rows go, and a refinement keeps the counts (only the
+    window statistics restart)."""
     params, opt = _setup(6)
     with torch.no_grad():
         params["scales"][3] = math.log(0.5)  # large: split

@@ -403,7 +403,8 @@ def refine(params: nn.ParameterDict, optimizer: torch.optim.Optimizer | None,
     ``effective()`` returns (opacity [N], max scale [N]) used for pruning, evaluated after
     growth; a 4D model passes the largest values over the times it is trained on, so a
     Gaussian visible at any time is kept. Default: from the raw parameters.
-    Resets the window statistics of ``stats`` (``seen`` follows the Gaussians). Returns counts {"cloned", "split", "pruned", "n"}.
+    Resets the window statistics of ``stats`` (``seen`` follows the Gaussians). Returns counts
+    {"cloned", "split", "pruned", "n"}.
     """
     n0 = len(params["means"])
     grads = stats.grad2d / stats.count.clamp_min(1)

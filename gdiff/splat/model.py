@@ -18,9 +18,9 @@ field's grid) and ``dshN`` [N, K-1, 3] the view-dependent SH, ``shN + (2t - 1) d
 ``time_opacity`` / ``time_color`` / ``time_specular``; files from before ``dshN`` load with
 no view-dependent change). While fitting, ``time_gate`` [N] (see :meth:`raw_at_time`)
 switches these terms off for Gaussians not yet observed at both times; the saved model has
-the gate folded in (:meth:`apply_time_gate`). A later stage may add its own per-Gaussian entries (first
-dimension N), which densification carries along and :func:`save_model`/:func:`load_model`
-preserve. ``model.deformation`` is a :class:`~gdiff.splat.deform.Deformation` (or None for a
+the gate folded in (:meth:`apply_time_gate`). A later stage may add its own per-Gaussian
+entries (first dimension N), which densification carries along and
+:func:`save_model`/:func:`load_model` preserve. ``model.deformation`` is a :class:`~gdiff.splat.deform.Deformation` (or None for a
 static model); its deltas are applied only once ``model.deform_on`` is set (the fine phase).
 
 ``model.pt`` holds ``{"format", "version", "config", "state_dict", "meta"}``: ``config``

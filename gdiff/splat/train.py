@@ -23,8 +23,8 @@ Training (after Wu et al., CVPR 2024, "4D Gaussian Splatting"):
 
 Per-Gaussian changes over time (``dopacity``, ``dsh0``, ``dshN``; see
 :mod:`gdiff.splat.model`) are learnt only for Gaussians in view (centre inside the image, any
-opacity) in at least ``time_min_views`` training views of *each* time; the others keep one state for both
-times. Before and after images are often taken from different places (other heights, other
+opacity) in at least ``time_min_views`` training views of *each* time; the others keep one
+state for both times. Before and after images are often taken from different places (other heights, other
 sides), and a part of the scene seen at one time only carries no evidence of how it looks at
 the other: with the change terms free, every update from the time that sees it moves the
 shared value and the change term in opposite directions (for both parameters Adam takes
@@ -144,8 +144,7 @@ class FitOptions:
     time_opacity: bool = True  # per-Gaussian opacity change over time (splats "dopacity")
     time_color: bool = True  # per-Gaussian diffuse colour change over time (splats "dsh0")
     time_specular: bool = True  # per-Gaussian view-dependent colour change (splats "dshN")
-    time_min_views: int = 2  # learn a Gaussian's own change over time only once it was seen
-    # in this many training views of each time (0 = always; see the module docstring)
+    time_min_views: int = 2  # views per time that must see a Gaussian to learn its changes (0: all)
     deform: bool = True
     deform_position: bool = True
     deform_scale: bool = True

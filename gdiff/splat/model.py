@@ -21,7 +21,8 @@ switches these terms off for Gaussians not yet observed at both times; the saved
 the gate folded in (:meth:`apply_time_gate`). A later stage may add its own per-Gaussian
 entries (first dimension N), which densification carries along and
 :func:`save_model`/:func:`load_model` preserve. ``model.deformation`` is a
-:class:`~gdiff.splat.deform.Deformation` (or None for a static model); its deltas are applied only once ``model.deform_on`` is set (the fine phase).
+:class:`~gdiff.splat.deform.Deformation` (or None for a static model); its deltas are applied
+only once ``model.deform_on`` is set (the fine phase).
 
 ``model.pt`` holds ``{"format", "version", "config", "state_dict", "meta"}``: ``config``
 (SH degree, deformation architecture) + ``state_dict`` rebuild the module; ``meta`` holds

@@ -341,7 +341,9 @@ def pose_stats(ids0: np.ndarray, ids1: np.ndarray, o: CompareOptions,
                 # a piece split off a segment that stays at the other time (same place):
                 # the surface is still there, only a change of geometry shows a change
                 on_cont = ((region0 & region & cont1) | (region1 & region & cont0)).sum()
-                if on_cont >= 0.5 * region.sum() or disoccluded:
+                if disoccluded or (on_cont >= 0.5 * region.sum()
+                                   and not _support_shows(region0 & region, region1 & region,
+                                                          cont0, cont1, chroma, o, known)):
                     sim = float("nan")
             if cand:
                 differs = sim < o.same_similarity
@@ -365,6 +367,43 @@ def pose_stats(ids0: np.ndarray, ids1: np.ndarray, o: CompareOptions,
         rec["pos_size"] = rec["size"] if len(rec["pos"]) == 3 else float(np.sqrt(m.sum()))
         out[int(t)] = rec
     return out
+
+
+def _support_shows(reg0: np.ndarray, reg1: np.ndarray, cont0: np.ndarray, cont1: np.ndarray,
+                   chroma, o: CompareOptions, known: np.ndarray | None) -> bool:
+    """A candidate region lying on a segment that stays is a flat object removed from (or
+    added onto) that surface, not a fragment of it: True when the region is observed at both
+    times (``known`` given: key-view coverage, so the model is constrained at both times) and,
+    at the time it is missing, it shows the colours of the staying surface around it, while at
+    the time it is seen its colours differ from that surface (an object of its own on it).
+
+    ``reg0`` / ``reg1``: bool [H, W] the region's pixels where the ID is seen at t0 / t1;
+    ``cont0`` / ``cont1``: pixels of IDs that stay (:func:`_continuing`); ``chroma(t)``: the
+    :func:`_normalised_chroma` pair of the render at time t. The surroundings at each time are
+    a ring of width ~1/4 of the region's size on the IDs that stay (minus the region); at
+    least 3/4 of the ring must lie on them at both times (a region next to an object that
+    changed - its contact shadow or rim - is not surrounded by the staying surface). Their colours agree
+    when the Bhattacharyya coefficient of the chromaticity histograms is >=
+    ``texture_color_similarity``; the caller still needs the region's own colours to differ
+    between the times (a moved shadow keeps its chromaticity under white light)."""
+    if known is None:
+        return False
+    if reg0.sum() >= reg1.sum():
+        reg, own, other, cont_own, cont_other = reg0, 0, 1, cont0, cont1
+    else:
+        reg, own, other, cont_own, cont_other = reg1, 1, 0, cont1, cont0
+    n = int(reg.sum())
+    if n == 0:
+        return False
+    k = 2 * max(2, int(round(0.25 * np.sqrt(n)))) + 1
+    near = (cv2.dilate(reg.astype(np.uint8), np.ones((k, k), np.uint8)) > 0) & ~reg & known
+    ring_other, ring_own = near & cont_other, near & cont_own
+    if (min(ring_other.sum(), ring_own.sum()) < max(0.75 * near.sum(), 0.25 * n)):
+        return False  # not surrounded by the staying surface (e.g. the rim of a moved object)
+    c_own, c_other = chroma(own), chroma(other)
+    shows = _bhattacharyya(_chroma_hist(c_other, reg), _chroma_hist(c_other, ring_other))
+    stands_out = _bhattacharyya(_chroma_hist(c_own, reg), _chroma_hist(c_own, ring_own))
+    return shows >= o.texture_color_similarity > stands_out
 
 
 def _continuing(ids0: np.ndarray, ids1: np.ndarray, o: CompareOptions

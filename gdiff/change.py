@@ -20,7 +20,10 @@ For every pose of a path the ID maps at t=0 and t=1 (one shared ID space, see
   (``evidence_open``); (c) a texture difference confirms only when the colours differ too,
   and not at all - with depth - for a piece split off a segment that stays at the other time
   (a fragment of an unchanged surface) or for a partly disoccluded region (a surface revealed
-  by something that moved): there only a change of geometry shows a change;
+  by something that moved): there only a change of geometry shows a change - except for a flat
+  object lying on a staying surface (observed at both times, surrounded by that surface, which
+  shows at the other time, while the object stands out from it in colour): removed or added,
+  its thickness is below any depth threshold, so its texture and colour decide;
 * per ID, over all poses where it is visible (and judged), the share of confirmed candidates
   decides (``vote_frac``): changed IDs are changed on every frame (temporal consistency);
 * a changed ID is ``removed`` (seen at t0 only), ``added`` (t1 only) or ``moved`` (seen at both
@@ -242,7 +245,10 @@ def pose_stats(ids0: np.ndarray, ids1: np.ndarray, o: CompareOptions,
     region's chromaticity histograms < ``texture_color_similarity``) and, with depth, is not
     used when half of the region lies, at the other time, on IDs that stay at this pose
     (visible at both times with IoU >= ``presence_iou``), or when more than a quarter of it is
-    hidden at the other time behind a nearer surface (disoccluded).
+    hidden at the other time behind a nearer surface (disoccluded). Exception to the first
+    rule: with key-view coverage, a region surrounded by the staying surface that shows that
+    surface's colours at the other time and stands out from it at its own time is a flat
+    object removed from or put onto it (:func:`_support_shows`) and may be confirmed so.
     """
     has_depth = depth0 is not None and depth1 is not None
     has_rgb = rgb0 is not None and rgb1 is not None
@@ -342,8 +348,9 @@ def pose_stats(ids0: np.ndarray, ids1: np.ndarray, o: CompareOptions,
                 # the surface is still there, only a change of geometry shows a change
                 on_cont = ((region0 & region & cont1) | (region1 & region & cont0)).sum()
                 if disoccluded or (on_cont >= 0.5 * region.sum()
-                                   and not _support_shows(region0 & region, region1 & region,
-                                                          cont0, cont1, chroma, o, known)):
+                                   and not (has_rgb and _support_shows(
+                                       region0 & region, region1 & region, cont0, cont1,
+                                       chroma, o, known))):
                     sim = float("nan")
             if cand:
                 differs = sim < o.same_similarity

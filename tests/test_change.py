@@ -470,3 +470,46 @@ def test_pieces_of_one_object_form_one_instance():
     assert df.loc[2, "instance"] == df.loc[3, "instance"] != df.loc[4, "instance"]
     assert df.loc[5, "instance"] not in (df.loc[2, "instance"], df.loc[4, "instance"])
     assert df.loc[1, "instance"] == 0
+
+
+def test_flat_object_removed_from_a_staying_surface_is_a_change():
+    """A flat object (a pile of books) lies on a table at t0 and is gone at t1: its depth
+    barely changes and at t1 its pixels belong to the table segment, which stays. Observed at
+    both times, the table showing there at t1 and the object standing out from it at t0, its
+    texture and colour change confirms it. A shadow that moved across the table (same
+    chromaticity) and the contact rim of an object that moved away are not changes, and
+    without key-view coverage the fragment rule still holds."""
+    rng = np.random.default_rng(11)
+    o = CompareOptions(min_area=4)
+    wood = np.array([0.75, 0.5, 0.35], np.float32)
+    table = np.clip(wood * (0.6 + 0.5 * _smooth_texture(rng, (H, W), 1.5)), 0, 1)
+    rgb0, rgb1 = table.copy(), table.copy()
+    z0 = np.full((H, W), 5.0, np.float32)
+    ids0 = np.ones((H, W), np.int64)
+    ids1 = ids0.copy()
+    # (a) the books: lavender with white dots, 2 cm thick at 5 m (0.4 %: no depth change)
+    books = np.tile(np.array([0.6, 0.55, 0.85], np.float32), (12, 16, 1))
+    books[2::5, 2::5] = 1.0
+    rgb0[4:16, 4:20], z0[4:16, 4:20], ids0[4:16, 4:20] = books, 4.98, 2
+    # (b) a shadow cast on the table at t0 only: darker, same chromaticity
+    rgb0[22:34, 4:20] = _relight(table[22:34, 4:20], np.full(3, 0.35, np.float32), tone=False)
+    ids0[22:34, 4:20] = 3
+    # (c) an object that moved away (depth changed) and its contact rim at table depth,
+    #     coloured by the object's bounce light at t0
+    z0[8:30, 38:50], ids0[8:30, 38:50] = 4.0, 4
+    rgb0[8:30, 38:50] = np.array([0.2, 0.7, 0.3])
+    rim = np.zeros((H, W), bool)
+    rim[30:33, 36:52] = rim[22:30, 36:38] = rim[22:30, 50:52] = True  # hugs the object's base
+    rgb0[rim], ids0[rim] = np.array([0.3, 0.6, 0.3]), 5
+    z1 = np.full((H, W), 5.0, np.float32)
+    seen = np.ones((H, W), bool)
+    st = pose_stats(ids0, ids1, o, rgb0, rgb1, z0, z1, observed0=seen, observed1=seen)
+    assert st[2]["candidate"] and st[2]["evidence"] < o.min_evidence  # flat: no depth change
+    assert st[2]["confirmed"], st[2]
+    assert st[3]["candidate"] and not st[3]["confirmed"], st[3]
+    assert st[4]["confirmed"]  # the moved object itself: its depth changed
+    assert st[5]["candidate"] and not st[5]["confirmed"], st[5]
+    # without coverage a piece of a staying segment needs a change of geometry
+    assert not pose_stats(ids0, ids1, o, rgb0, rgb1, z0, z1)[2]["confirmed"]
+    df = decide([("pose", st)], o).set_index("id")
+    assert df.at[2, "changed"] and df.at[2, "type"] == "removed"

@@ -186,3 +186,6 @@ def test_idcompare_uses_model_depth_to_ignore_a_moved_shadow(tmp_path):
     opts = E.EvalOptions(methods=["idcompare"], idcompare_depth=False)
     assert E.build_methods(opts, depth=depth)["idcompare"](view) is not None
     assert len(calls) == 2  # idcompare_depth=False: the depth renderer is not used
+    on = E.EvalOptions(methods=["idcompare"], idcompare_depth=True)
+    E.build_methods(on, depth=depth)["idcompare"](view)
+    assert len(calls) == 4  # idcompare_depth=True: rendered at t=0 and t=1

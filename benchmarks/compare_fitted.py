@@ -40,7 +40,7 @@ from gdiff.change import CompareOptions
 from gdiff.io import read_json, read_mask
 from gdiff.metrics import pixel_scores, scores_from_counts
 from gdiff.segment import SegmentOptions
-from gdiff.segtrack import _poses, compare, segment_and_track
+from gdiff.segtrack import _poses, compare, key_frames, segment_and_track
 from gdiff.sfm import read_cameras_file
 from gdiff.track import TrackOptions
 
@@ -189,8 +189,7 @@ def main(argv=None):
     out.mkdir(parents=True, exist_ok=True)
     poses_json = res / "sequence" / "poses.json"
     cams, meta = _poses(poses_json)
-    keys = {(p, i): (1 if (fr.get("set") or "").endswith("after") else 0)
-            for p, ml in meta.items() for i, fr in enumerate(ml) if fr.get("key")}
+    keys = key_frames(meta)
     scene = synth.build_scene(a.preset, a.seed)
     align = align_to_gt(read_cameras_file(res / "poses" / "cameras.json"),
                         read_cameras_file(Path(a.scene_dir) / "gt_cameras.json"))

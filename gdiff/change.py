@@ -44,6 +44,8 @@ import cv2
 import numpy as np
 import pandas as pd
 from scipy.optimize import linear_sum_assignment
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import connected_components
 
 from .appearance import region_similarity, texture as image_texture
 from .errors import ConfigError
@@ -503,27 +505,22 @@ def _group_instances(df: pd.DataFrame) -> None:
     ch = df.index[df["changed"]].tolist()
     if not ch:
         return
-    parent = {i: i for i in ch}
-
-    def root(i):
-        while parent[i] != i:
-            parent[i] = parent[parent[i]]
-            i = parent[i]
-        return i
-
-    side = {i: int(df.at[i, "n_t1"] > df.at[i, "n_t0"]) for i in ch}
-    by_id = {int(df.at[i, "id"]): i for i in ch}
+    side = [int(df.at[i, "n_t1"] > df.at[i, "n_t0"]) for i in ch]
+    pos = {int(df.at[i, "id"]): k for k, i in enumerate(ch)}
+    rows, cols = [], []
     for k, a in enumerate(ch):
-        partner = by_id.get(int(df.at[a, "partner"]))
+        partner = pos.get(int(df.at[a, "partner"]))
         if partner is not None:
-            parent[root(partner)] = root(a)
-        for b in ch[k + 1:]:
-            if side[a] == side[b] and not _apart(df.at[a, "_pos"], df.at[b, "_pos"]):
-                parent[root(b)] = root(a)
-    groups: dict[int, list[int]] = defaultdict(list)
-    for i in ch:
-        groups[root(i)].append(i)
-    for members in groups.values():
+            rows.append(k)
+            cols.append(partner)
+        for j in range(k + 1, len(ch)):
+            if side[k] == side[j] and not _apart(df.at[a, "_pos"], df.at[ch[j], "_pos"]):
+                rows.append(k)
+                cols.append(j)
+    graph = coo_matrix((np.ones(len(rows)), (rows, cols)), shape=(len(ch), len(ch)))
+    _, group = connected_components(graph, directed=False)
+    for g in np.unique(group):
+        members = [ch[k] for k in np.flatnonzero(group == g)]
         head = max(members, key=lambda i: df.at[i, "area"])
         df.loc[members, "instance"] = int(df.at[head, "id"])
 

@@ -279,13 +279,20 @@ def compare(instances_dir, poses_json, out_dir, options: CompareOptions | None =
     if not ids:
         raise SceneError(f"{instances_dir / 'index.json'}: no frames listed; re-run segment")
 
-    def load(key):
+    def read(key):
         if key not in renders or not renders[key].exists():
             return {}
         rgb, alpha, depth = _read_exr(renders[key])
         return dict(rgb=rgb, alpha=alpha, depth=depth, camera=cams[key[0]][key[2]])
 
-    masks, df = compare_paths(ids, load, options, keys=key_frames(meta))
+    keys = key_frames(meta)
+    # key frames are read once: for the coverage views and again at their own pose
+    keyed = {(p, TIMES[t], i): read((p, TIMES[t], i)) for (p, i), t in keys.items()}
+
+    def load(key):
+        return keyed[key] if key in keyed else read(key)
+
+    masks, df = compare_paths(ids, load, options, keys=keys)
     root = out_dir.parent
     rows = []
     for (p, i), (m0, m1) in sorted(masks.items()):
@@ -294,12 +301,11 @@ def compare(instances_dir, poses_json, out_dir, options: CompareOptions | None =
             f = out_dir / p / name / f"{i:05d}.png"
             write_mask(f, m)
             rel[name] = os.path.relpath(f, root)
-        fr = meta[p][i] if i < len(meta[p]) else {}
-        if fr.get("key"):
-            st = fr.get("set") or ""
-            rows.append(dict(path=p, frame=i, image=fr.get("image", ""), set=st,
-                             time=1 if st.endswith("after") else 0, mask_t0=rel["t0"],
-                             mask_t1=rel["t1"], mask_union=rel["union"]))
+        if (p, i) in keys:
+            fr = meta[p][i]
+            rows.append(dict(path=p, frame=i, image=fr.get("image", ""), set=fr.get("set") or "",
+                             time=keys[(p, i)], mask_t0=rel["t0"], mask_t1=rel["t1"],
+                             mask_union=rel["union"]))
     write_csv(out_dir / "changes.csv", df[df["changed"]].drop(columns=["changed"]))
     write_csv(out_dir / "keyframes.csv", pd.DataFrame(rows, columns=[
         "path", "frame", "image", "set", "time", "mask_t0", "mask_t1", "mask_union"]))

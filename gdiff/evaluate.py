@@ -228,9 +228,11 @@ def model_renderer(model: Any) -> Callable[[Camera, float], np.ndarray]:
     (``gdiff.splat.render.render``, imported on first use)."""
 
     def render(camera: Camera, t: float) -> np.ndarray:
+        import torch
+
         from .splat.render import render as splat_render  # lazy: stage module
 
-        with _no_grad():
+        with torch.no_grad():
             rgb = splat_render(model, [camera], t, render_mode="RGB")["rgb"]
         rgb = np.asarray(rgb.detach().cpu().numpy(), dtype=np.float32)
         return np.clip(rgb[0] if rgb.ndim == 4 else rgb, 0.0, 1.0)
@@ -243,19 +245,15 @@ def model_depth(model: Any) -> Callable[[Camera, float], np.ndarray]:
     model: the expected depth, as the render stage writes it to the EXR ``Z`` channel."""
 
     def depth(camera: Camera, t: float) -> np.ndarray:
+        import torch
+
         from .splat.render import render as splat_render  # lazy: stage module
 
-        with _no_grad():
+        with torch.no_grad():
             out = splat_render(model, [camera], t, render_mode="ED")
         return out["depth"].detach().cpu().numpy()[0, ..., 0].astype(np.float32)
 
     return depth
-
-
-def _no_grad():
-    import torch
-
-    return torch.no_grad()
 
 
 def evaluate_workflow_scene(scene_dir: str | Path, cameras_json: str | Path,

@@ -62,15 +62,7 @@ def test_removed_and_added_lookalikes_pair_as_moved():
 
 @pytest.fixture(scope="module")
 def demo_paths():
-    p = dataclasses.replace(synth.get_preset("demo"), width=128, height=96, supersample=1)
-    scene = synth.build_scene(p, 2)
-    frames, gt = {}, {}
-    for i, cam in enumerate(synth.orbit_path(scene, "before", 6)):
-        for t, st in (("t0", "before"), ("t1", "after")):
-            r = scene.render(cam, st)
-            frames[("p1", t, i)] = dict(rgb=r["rgb"], depth=r["depth"], camera=cam)
-            gt[("p1", t, i)] = r
-    return scene, frames, gt
+    return _render_path("demo", 2, 6)
 
 
 def test_change_types_and_masks_on_synthetic_scene(demo_paths):
@@ -206,17 +198,23 @@ def test_texture_similarity_is_lighting_invariant():
     assert np.isnan(region_similarity(texture(flat), texture(flat * 0.7), region, 0.03))
 
 
-@pytest.fixture(scope="module")
-def light_paths():
-    p = dataclasses.replace(synth.get_preset("lightchange"), width=128, height=96, supersample=1)
-    scene = synth.build_scene(p, 1)
+def _render_path(preset: str, seed: int, n: int):
+    """A 128x96 synth scene and ground-truth renders of ``n`` before-orbit poses at both times:
+    (scene, frames {("p1", t, i): rgb/depth/camera}, gt {key: render dict})."""
+    p = dataclasses.replace(synth.get_preset(preset), width=128, height=96, supersample=1)
+    scene = synth.build_scene(p, seed)
     frames, gt = {}, {}
-    for i, cam in enumerate(synth.orbit_path(scene, "before", 5)):
+    for i, cam in enumerate(synth.orbit_path(scene, "before", n)):
         for t, st in (("t0", "before"), ("t1", "after")):
             r = scene.render(cam, st)
             frames[("p1", t, i)] = dict(rgb=r["rgb"], depth=r["depth"], camera=cam)
             gt[("p1", t, i)] = r
     return scene, frames, gt
+
+
+@pytest.fixture(scope="module")
+def light_paths():
+    return _render_path("lightchange", 1, 5)
 
 
 def test_replaced_object_detected_under_lighting_change(light_paths):

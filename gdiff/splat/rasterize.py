@@ -35,7 +35,7 @@ Maths (classic 3DGS, as in the reference CUDA kernels)
 Backends
 --------
 ``backend="torch"`` is plain differentiable torch (any device; the reference). ``"cpp"`` is the
-compiled CPU kernel of :mod:`gdiff.splat.csrc` (tile-based, early termination, OpenMP).
+compiled CPU kernel of :mod:`gdiff.splat.csrc` (tile-based, early termination, std::threads).
 ``"gsplat"`` calls ``gsplat.rasterization`` (CUDA tensors only, gsplat installed). ``"auto"``
 picks gsplat for CUDA tensors when installed, else the C++ kernel for CPU tensors when it builds,
 else torch. The projection (and so the gradient chain to 3D parameters) is shared torch code.

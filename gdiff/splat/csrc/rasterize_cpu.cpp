@@ -10,7 +10,8 @@
 // 3-sigma bounding box overlaps. Inside a tile the loop runs over Gaussians and, for each, over
 // the pixels of its bounding box, so small Gaussians cost only their footprint. Tiles are
 // shared among std::threads (at::get_num_threads() of them); gradients are accumulated in
-// per-thread buffers and summed at the end.
+// per-thread buffers and summed at the end, with a fixed tile-to-thread split so that they
+// are the same on every run (see run_tasks).
 //
 // Compiled with -ffp-contract=off so that sigma rounds exactly as in the torch path.
 
@@ -38,13 +39,22 @@ constexpr double kAlphaMax = 0.99;
 constexpr double kAlphaMin = 1.0 / 255.0;
 constexpr double kTMin = 1e-4;
 
-// Run fn(task, thread_id) for task in [0, n_tasks) on up to at::get_num_threads() threads,
-// handing out tasks dynamically (tiles have very uneven cost).
+// Run fn(task, thread_id) for task in [0, n_tasks) on up to at::get_num_threads() threads.
+// Dynamic: tasks are handed out as threads free up (tiles have very uneven cost); for kernels
+// whose per-thread results do not depend on which thread ran a task (the forward pass).
+// Static (dynamic = false): thread k runs tasks k, k + n, k + 2n, ... in order, so per-thread
+// sums are formed in the same order on every run with the same thread count (the backward
+// pass: training and its resume from a checkpoint are then bitwise reproducible).
 template <typename F>
-void run_tasks(int64_t n_tasks, int n_threads, F fn) {
+void run_tasks(int64_t n_tasks, int n_threads, F fn, bool dynamic = true) {
   n_threads = std::max(1, std::min<int>(n_threads, (int)std::max<int64_t>(n_tasks, 1)));
   std::atomic<int64_t> next{0};
+  const int nt = n_threads;
   auto worker = [&](int tid) {
+    if (!dynamic) {
+      for (int64_t t = tid; t < n_tasks; t += nt) fn(t, tid);
+      return;
+    }
     for (int64_t t = next.fetch_add(1); t < n_tasks; t = next.fetch_add(1)) fn(t, tid);
   };
   if (n_threads == 1) {
@@ -316,7 +326,7 @@ std::vector<at::Tensor> backward_impl(
       r[5] += gop;
       if (absgrad) { r[6 + D] += gabs[0]; r[7 + D] += gabs[1]; }
     }
-  });
+  }, /*dynamic=*/false);
   at::Tensor total = acc_all.sum(0);  // [G, stride]
   at::Tensor g_m = total.narrow(1, 0, 2).reshape({C, N, 2});
   at::Tensor g_q = total.narrow(1, 2, 3).reshape({C, N, 3});

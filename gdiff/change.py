@@ -246,8 +246,12 @@ def pose_stats(ids0: np.ndarray, ids1: np.ndarray, o: CompareOptions,
     Texture-only confirmation also needs different colours (Bhattacharyya coefficient of the
     region's chromaticity histograms < ``texture_color_similarity``) and, with depth, is not
     used when half of the region lies, at the other time, on IDs that stay at this pose
-    (visible at both times with IoU >= ``presence_iou``), or when more than a quarter of it is
-    hidden at the other time behind a nearer surface (disoccluded). Exception to the first
+    (visible at both times with IoU >= ``presence_iou``), when the depth of half of it did not
+    change (``depth_change_rel``: the surface is where it was, e.g. a floor re-segmented
+    because shadows or glare moved) unless another ID of the same footprint took its place
+    at the other time (:func:`_swapped`: an object replaced by one of the same shape), or
+    when more than a quarter of it is hidden at the other time behind a nearer surface
+    (disoccluded). Exception to the first
     rule: with key-view coverage, a region surrounded by the staying surface that shows that
     surface's colours at the other time and stands out from it at its own time is a flat
     object removed from or put onto it (:func:`_support_shows`) and may be confirmed so.
@@ -256,10 +260,14 @@ def pose_stats(ids0: np.ndarray, ids1: np.ndarray, o: CompareOptions,
     has_rgb = rgb0 is not None and rgb1 is not None
     cache: dict[str, np.ndarray] = {}
 
+    def raw_depth_change():
+        if "raw" not in cache:
+            cache["raw"] = depth_change(depth0, depth1, o.depth_change_rel)
+        return cache["raw"]
+
     def ev_depth():
         if "depth" not in cache:
-            cache["depth"] = coherent(depth_change(depth0, depth1, o.depth_change_rel),
-                                      o.evidence_open)
+            cache["depth"] = coherent(raw_depth_change(), o.evidence_open)
         return cache["depth"]
 
     def nearer():
@@ -349,7 +357,12 @@ def pose_stats(ids0: np.ndarray, ids1: np.ndarray, o: CompareOptions,
                 # a piece split off a segment that stays at the other time (same place):
                 # the surface is still there, only a change of geometry shows a change
                 on_cont = ((region0 & region & cont1) | (region1 & region & cont0)).sum()
-                if disoccluded or (on_cont >= 0.5 * region.sum()
+                # likewise a region whose surface did not move, unless another instance took
+                # its place (an object swapped for one of the same shape): a lighting change
+                # re-segments a floor under moved shadows or glare, but leaves its depth
+                same_place = (~raw_depth_change()[region]).mean() >= 0.5 and not _swapped(
+                    ids0, ids1, t, region0 & region, region1 & region, o)
+                if disoccluded or ((on_cont >= 0.5 * region.sum() or same_place)
                                    and not (has_rgb and _support_shows(
                                        region0 & region, region1 & region, cont0, cont1,
                                        chroma, o, known))):
@@ -376,6 +389,27 @@ def pose_stats(ids0: np.ndarray, ids1: np.ndarray, o: CompareOptions,
         rec["pos_size"] = rec["size"] if len(rec["pos"]) == 3 else float(np.sqrt(m.sum()))
         out[int(t)] = rec
     return out
+
+
+def _swapped(ids0: np.ndarray, ids1: np.ndarray, t: int, reg0: np.ndarray, reg1: np.ndarray,
+             o: CompareOptions) -> bool:
+    """True when the candidate ``t``'s region (``reg0`` / ``reg1``: its pixels seen at t0 /
+    t1) is, at the other time, mostly (>= 1/2) covered by one other ID whose mask there
+    matches the candidate's own mask (IoU >= 1/2, and >= ``presence_iou``): an instance of the
+    same footprint took its place (an object replaced by one of the same shape). A surface
+    re-segmented by a lighting change is covered by pieces of larger or smaller segments."""
+    own, other = (ids0, ids1) if reg0.sum() >= reg1.sum() else (ids1, ids0)
+    reg = reg0 if own is ids0 else reg1
+    cover = other[reg]
+    cover = cover[(cover != 0) & (cover != t)]
+    if cover.size < 0.5 * reg.sum():
+        return False
+    vals, counts = np.unique(cover, return_counts=True)
+    k = int(np.argmax(counts))
+    if counts[k] < 0.5 * reg.sum():
+        return False
+    a, b = own == t, other == vals[k]
+    return bool((a & b).sum() >= max(0.5, o.presence_iou) * (a | b).sum())
 
 
 def _support_shows(reg0: np.ndarray, reg1: np.ndarray, cont0: np.ndarray, cont1: np.ndarray,

@@ -511,3 +511,34 @@ def test_flat_object_removed_from_a_staying_surface_is_a_change():
     assert not pose_stats(ids0, ids1, o, rgb0, rgb1, z0, z1)[2]["confirmed"]
     df = decide([("pose", st)], o).set_index("id")
     assert df.at[2, "changed"] and df.at[2, "type"] == "removed"
+
+
+def test_floor_resegmented_by_moved_glare_is_not_a_change():
+    """A lighting change puts glare on a checker floor at t1: the washed-out part becomes a
+    segment of its own and the floor's segments at t0 no longer match any at t1, so every
+    piece is a candidate with a different texture and colour. The depth did not change
+    anywhere, so none is confirmed; an object replaced in place by one of the same shape and
+    depth (another ID of the same footprint at the other time) still is."""
+    o = CompareOptions(min_area=4)
+    jj, ii = np.mgrid[0:H, 0:W]
+    checker = (((ii // 6) + (jj // 6)) % 2).astype(np.float32)
+    floor = np.stack([0.15 + 0.5 * checker, 0.2 + 0.45 * checker, 0.3 + 0.4 * checker], -1)
+    rgb0 = floor.copy()
+    glare = 4.0 * np.exp(-(((ii - 28) / 18.0) ** 2 + ((jj - 18) / 16.0) ** 2))[..., None]
+    rgb1 = np.clip(_relight(floor, np.array([1.2, 1.0, 0.7], np.float32))
+                   + glare * np.array([1.0, 0.95, 0.8]), 0, 1).astype(np.float32)
+    z = np.full((H, W), 5.0, np.float32)
+    ids0 = np.where(ii < 30, 1, 2)
+    ids1 = np.where(ii < 12, 4, np.where(ii < 42, 3, 5))  # the glare segment in between
+    rng = np.random.default_rng(3)
+    obj0 = np.clip(np.array([0.8, 0.3, 0.2]) * (0.4 + _smooth_texture(rng, (10, 8), 1.0)), 0, 1)
+    obj1 = np.clip(np.array([0.2, 0.4, 0.8]) * (0.4 + _smooth_texture(rng, (10, 8), 1.0)), 0, 1)
+    rgb0[2:12, 48:56], rgb1[2:12, 48:56] = obj0, obj1
+    ids0[2:12, 48:56], ids1[2:12, 48:56] = 6, 7
+    st = pose_stats(ids0, ids1, o, rgb0, rgb1, z, z.copy())
+    for t in (1, 2, 3, 4, 5):
+        assert st[t]["candidate"] and not st[t]["confirmed"], (t, st[t])
+    assert st[3]["similarity"] != st[3]["similarity"]  # texture not used (NaN)
+    assert st[6]["confirmed"] and st[7]["confirmed"]
+    # judged on appearance alone (no depth), the glare segment would pass
+    assert pose_stats(ids0, ids1, o, rgb0, rgb1)[3]["confirmed"]

@@ -46,6 +46,8 @@ import cv2
 import numpy as np
 import pandas as pd
 from scipy.optimize import linear_sum_assignment
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import connected_components
 
 from .appearance import Texture, region_similarity, texture as image_texture
 from .cameras import Camera
@@ -449,6 +451,13 @@ def track_positions(ids: list[np.ndarray], frames: list[TrackFrame]
     return out
 
 
+def _same_place(pa: np.ndarray, sa: float, pb: np.ndarray, sb: float, dist_frac: float) -> bool:
+    """Two tracks' (median world point [3], metric size) at one time: the same object when the
+    points are closer than ``dist_frac`` x the smaller size and the sizes agree within 1.5x."""
+    small = min(sa, sb)
+    return bool(np.linalg.norm(pa - pb) <= dist_frac * small and max(sa, sb) <= 1.5 * small)
+
+
 def merge_by_position(ids: list[np.ndarray], frames: list[TrackFrame],
                       dist_frac: float) -> dict[int, int]:
     """Tracks of one object by 3D position (see the module docstring, step 5).
@@ -463,38 +472,29 @@ def merge_by_position(ids: list[np.ndarray], frames: list[TrackFrame],
         for t in np.unique(m):
             if t:
                 frames_of.setdefault(int(t), set()).add(k)
-    parent = {t: t for t in pos}
-
-    def root(t):
-        while parent[t] != t:
-            parent[t] = parent[parent[t]]
-            t = parent[t]
-        return t
-
     tr = sorted(pos)
+    links = []
     for i, a in enumerate(tr):
-        for b in tr[i + 1:]:
+        for j in range(i + 1, len(tr)):
+            b = tr[j]
             if set(pos[a]) != set(pos[b]) or frames_of.get(a, set()) & frames_of.get(b, set()):
                 continue
-            ok = True
-            for tm in pos[a]:
-                (pa, sa), (pb, sb) = pos[a][tm], pos[b][tm]
-                if np.linalg.norm(pa - pb) > dist_frac * min(sa, sb) or \
-                        max(sa, sb) > 1.5 * min(sa, sb):
-                    ok = False
-                    break
-            if ok:
-                ra, rb = root(a), root(b)
-                if ra != rb:
-                    parent[max(ra, rb)] = min(ra, rb)
+            if all(_same_place(*pos[a][tm], *pos[b][tm], dist_frac) for tm in pos[a]):
+                links.append((i, j))
+    if not links:
+        return {}
+    i, j = np.array(links).T
+    graph = coo_matrix((np.ones(len(i)), (i, j)), shape=(len(tr), len(tr)))
+    _, label = connected_components(graph, directed=False)
     # a group may merge only tracks that never share a frame
     out = {}
     groups: dict[int, list[int]] = {}
-    for t in tr:
-        groups.setdefault(root(t), []).append(t)
-    for r, members in groups.items():
+    for t, g in zip(tr, label):
+        groups.setdefault(int(g), []).append(t)
+    for members in groups.values():
+        r = members[0]  # the smallest ID of the group (tr is sorted)
         used: set[int] = set()
-        for t in sorted(members):
+        for t in members:
             if frames_of.get(t, set()) & used:
                 continue
             used |= frames_of.get(t, set())

@@ -5,8 +5,16 @@ Conventions: see :mod:`gdiff.partition`.
 
 from __future__ import annotations
 
-import numpy as np
+import argparse
+import json
+from pathlib import Path
 
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from ..cameras import Camera, load_cameras
+from ..errors import GdiffError
+from ..io import atomic_path, write_image, write_mask
 from .export import overlay
 from .model import load_partition_model, render_change_map
 
@@ -14,11 +22,6 @@ from .model import load_partition_model, render_change_map
 def _read_c2w(path) -> np.ndarray:
     """A 4x4 (or 3x4) camera-to-world matrix from ..npy, .json (a matrix, or an object with
     ``c2w`` / ``transform_matrix``) or a text file of 12/16 numbers."""
-    import json
-    from pathlib import Path
-
-    from ..errors import GdiffError
-
     path = Path(path)
     try:
         if path.suffix == ".npy":
@@ -36,8 +39,6 @@ def _read_c2w(path) -> np.ndarray:
 
 
 def _as_c2w(a: np.ndarray, source: str) -> np.ndarray:
-    from ..errors import GdiffError
-
     a = a.reshape(-1)
     if a.size not in (12, 16) or not np.isfinite(a).all():
         raise GdiffError(f"{source}: expected 12 or 16 finite numbers (a 3x4 or 4x4 "
@@ -50,10 +51,6 @@ def pose_from_values(values: list[float]) -> np.ndarray:
     """c2w [4, 4] from 7 numbers ``x y z qw qx qy qz`` (camera centre in world units and the
     camera-to-world rotation as a wxyz quaternion, OpenCV camera axes) or 12/16 numbers (a
     row-major 3x4/4x4 c2w matrix)."""
-    from scipy.spatial.transform import Rotation
-
-    from ..errors import GdiffError
-
     v = np.asarray(values, dtype=np.float64)
     if v.size == 7:
         q = v[3:]
@@ -68,12 +65,6 @@ def pose_from_values(values: list[float]) -> np.ndarray:
 
 def change_map_main(argv=None) -> int:
     """``gdiff change-map``: render a change map from a partition model at any camera pose."""
-    import argparse
-
-    from ..cameras import Camera, load_cameras
-    from ..errors import GdiffError
-    from ..io import write_image, write_mask
-
     p = argparse.ArgumentParser(
         prog="gdiff change-map", description=change_map_main.__doc__,
         epilog="Camera axes are OpenCV (x right, y down, z forward); c2w is camera-to-world. "
@@ -134,8 +125,6 @@ def change_map_main(argv=None) -> int:
     write_mask(args.out, r["mask"])
     if args.prob_out:
         if args.prob_out.endswith(".npy"):
-            from ..io import atomic_path
-
             with atomic_path(args.prob_out) as tmp:
                 np.save(tmp, r["prob"])
         else:

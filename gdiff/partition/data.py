@@ -7,8 +7,15 @@ Conventions: see :mod:`gdiff.partition`.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from pathlib import Path
 
+import cv2
 import numpy as np
+import pandas as pd
+
+from ..cameras import load_cameras
+from ..errors import SceneError
+from ..io import read_image, read_mask
 
 
 @dataclass
@@ -47,13 +54,6 @@ def read_key_views(keyframes_csv, cameras_json, scene_dir, max_side: int = 0) ->
     <= ``max_side`` (0 = full size). Raises :class:`gdiff.errors.SceneError` naming the file and
     row for missing columns, unknown images or missing files.
     """
-    from pathlib import Path
-
-    import pandas as pd
-
-    from ..cameras import load_cameras
-    from ..errors import SceneError
-
     keyframes_csv, scene_dir = Path(keyframes_csv), Path(scene_dir)
     try:
         df = pd.read_csv(keyframes_csv)
@@ -91,10 +91,6 @@ def read_key_views(keyframes_csv, cameras_json, scene_dir, max_side: int = 0) ->
 
 def _load_image(path, camera) -> np.ndarray:
     """Photo as float32 [H, W, 3] sRGB in [0, 1], resized (area) to the camera's size."""
-    import cv2
-
-    from ..io import read_image
-
     img = read_image(path)
     if img.shape[:2] != (camera.height, camera.width):
         img = cv2.resize(img, (camera.width, camera.height), interpolation=cv2.INTER_AREA)
@@ -103,10 +99,6 @@ def _load_image(path, camera) -> np.ndarray:
 
 def _load_mask(path, camera) -> np.ndarray:
     """Mask as float32 [H, W] in [0, 1] at the camera's size (area resampling: soft edges)."""
-    import cv2
-
-    from ..io import read_mask
-
     m = read_mask(path).astype(np.float32)
     if m.shape != (camera.height, camera.width):
         m = cv2.resize(m, (camera.width, camera.height), interpolation=cv2.INTER_AREA)

@@ -6,12 +6,20 @@ Conventions: see :mod:`gdiff.partition`.
 
 from __future__ import annotations
 
+from pathlib import Path
+
+import cv2
 import numpy as np
+import pandas as pd
 import torch
 
+from ..io import write_image, write_mask
+from ..log import progress
+from ..metrics import pixel_scores
+from ..splat.gaussians import Gaussians
+from ..splat.ply import write_gaussians
 from .data import KeyView, _load_image, _load_mask
 from .model import PartitionModel, render_change_map
-
 
 MIN_VISIBLE_OPACITY = 0.005  # a Gaussian below this opacity at time t is absent at t
 
@@ -36,11 +44,6 @@ def write_split_ply(pm: PartitionModel, out_dir, threshold: float = 0.5) -> dict
     ``changed.ply`` (the changed Gaussians present at t=0 followed by those present at t=1:
     what was there and changed plus what is new), ``unchanged.ply`` (= ``unchanged_t0``).
     Returns the Gaussian counts per file."""
-    from pathlib import Path
-
-    from ..splat.gaussians import Gaussians
-    from ..splat.ply import write_gaussians
-
     out = Path(out_dir)
     parts, counts = {}, {}
     for t in (0, 1):
@@ -60,8 +63,6 @@ def overlay(image: np.ndarray, mask: np.ndarray, colour=(1.0, 0.15, 0.1), alpha:
             outline: np.ndarray | None = None) -> np.ndarray:
     """The image [H, W, 3] (float sRGB) with ``mask`` [H, W] tinted in ``colour`` and its
     outline drawn; ``outline`` (optional bool [H, W], e.g. a target mask) is drawn in green."""
-    import cv2
-
     img = np.clip(np.asarray(image, np.float32), 0, 1).copy()
     m = np.asarray(mask, bool)
     img[m] = (1 - alpha) * img[m] + alpha * np.asarray(colour, np.float32)
@@ -84,14 +85,6 @@ def write_key_maps(pm: PartitionModel, views: list[KeyView], maps_dir):
     time, IoU of the map at the photo's time vs its target (``iou_own_time``) and of the union
     map vs ``mask_union`` (``iou_union``), plus pixel F1 of the union.
     """
-    from pathlib import Path
-
-    import pandas as pd
-
-    from ..io import write_image, write_mask
-    from ..log import progress
-    from ..metrics import pixel_scores
-
     maps_dir = Path(maps_dir)
     rows = []
     for v in progress(views, desc="partition maps"):

@@ -6,14 +6,21 @@ Conventions: see :mod:`gdiff.partition`.
 
 from __future__ import annotations
 
+import dataclasses
+from pathlib import Path
+
 import numpy as np
 import torch
 from torch import nn
 
+from ..cameras import Camera
+from ..device import resolve_device
+from ..errors import ModelFileError
+from ..io import atomic_path
+from ..splat.model import GaussianModel4D
 from .head import ChangeHead, change_probability
 from .options import PartitionOptions
 from .render import render_features
-
 
 FORMAT = "gdiff.PartitionModel"
 VERSION = 1
@@ -104,8 +111,6 @@ def _camera_to_dict(cam) -> dict:
 
 def partition_blob(pmodel: PartitionModel, options: PartitionOptions | None = None) -> dict:
     """Everything :func:`load_partition_model` needs, as a torch-saveable dict."""
-    import dataclasses
-
     fit = pmodel.fit
     return {"format": FORMAT, "version": VERSION,
             "fit": {"config": fit.config(),
@@ -121,8 +126,6 @@ def partition_blob(pmodel: PartitionModel, options: PartitionOptions | None = No
 def save_partition_model(pmodel: PartitionModel, path, options: PartitionOptions | None = None
                          ) -> None:
     """Write the partition ``model.pt`` atomically (format ``gdiff.PartitionModel``)."""
-    from ..io import atomic_path
-
     with atomic_path(path) as tmp:
         torch.save(partition_blob(pmodel, options), tmp)
 
@@ -131,13 +134,6 @@ def load_partition_model(path, device="auto") -> PartitionModel:
     """Load a partition ``model.pt`` onto ``device`` (``auto``/``cpu``/``cuda`` or a
     ``torch.device``), in eval mode. Raises :class:`gdiff.errors.ModelFileError` naming the
     file when it is missing or not a partition model."""
-    from pathlib import Path
-
-    from ..cameras import Camera
-    from ..device import resolve_device
-    from ..errors import ModelFileError
-    from ..splat.model import GaussianModel4D
-
     path = Path(path)
     if not path.is_file():
         raise ModelFileError(f"{path}: partition model not found; run the partition stage "

@@ -10,6 +10,10 @@ from dataclasses import dataclass
 
 import torch
 
+from ..cameras import stack_for_render
+from ..splat.rasterize import (ALPHA_MAX, ALPHA_MIN, SIGMA_MAX, T_MIN, _pixel_pairs, _sigma,
+                               covariance_3d, opacity_footprint, project_gaussians, rasterize)
+from ..splat.sh import sh_to_color
 from .head import CHANGED, UNCHANGED, ChangeHead
 
 
@@ -28,10 +32,6 @@ def render_features(g, encoding: torch.Tensor, camera, background: torch.Tensor 
         dict ``features`` [H, W, D], ``alpha`` [H, W] and, with ``with_rgb``, ``rgb`` [H, W, 3]
         (sRGB-encoded values as fitted). Differentiable w.r.t. ``g`` and ``encoding``.
     """
-    from ..cameras import stack_for_render
-    from ..splat.rasterize import rasterize
-    from ..splat.sh import sh_to_color
-
     dev = g.means.device
     viewmats, Ks = stack_for_render([camera], device=dev, dtype=g.means.dtype)
     feats = encoding
@@ -97,10 +97,6 @@ def blend_weights(g, camera) -> BlendWeights:
     ``render_blended(weights, e)`` equals the rasterized features of ``e`` (no background).
     Memory: 12 bytes per (pixel, Gaussian) pair, about 30-40 pairs per pixel on fitted scenes.
     """
-    from ..cameras import stack_for_render
-    from ..splat.rasterize import (ALPHA_MAX, ALPHA_MIN, SIGMA_MAX, T_MIN, _pixel_pairs, _sigma,
-                                  covariance_3d, opacity_footprint, project_gaussians)
-
     dev = g.means.device
     W, H = camera.width, camera.height
     viewmats, Ks = stack_for_render([camera], device=dev, dtype=g.means.dtype)

@@ -6,12 +6,27 @@ Conventions: see :mod:`gdiff.partition`.
 
 from __future__ import annotations
 
+import dataclasses
+import hashlib
 import logging
+import shutil
+import time as _time
+from pathlib import Path
 
 import numpy as np
+import pandas as pd
 import torch
 
+from ..cameras import Camera
+from ..device import resolve_device
+from ..errors import TrainingError
+from ..io import atomic_path, write_csv, write_json
 from ..knn import NeighbourIndex
+from ..log import progress
+from ..splat.gaussians import camera_extent
+from ..splat.losses import l1
+from ..splat.model import load_model
+from ..splat.train import FitOptions
 from .data import _load_image, _load_mask, read_key_views
 from .export import write_key_maps, write_split_ply
 from .head import ChangeHead
@@ -25,10 +40,6 @@ log = logging.getLogger("gdiff.partition")
 
 def _fit_options(fit) -> dict:
     """The fit stage's options as saved in ``model.meta`` (defaults of FitOptions if absent)."""
-    import dataclasses
-
-    from ..splat.train import FitOptions
-
     saved = (getattr(fit, "meta", None) or {}).get("options") or {}
     base = dataclasses.asdict(FitOptions())
     return {**base, **{k: v for k, v in saved.items() if k in base}}
@@ -78,8 +89,6 @@ def _tv_loss(pm: PartitionModel, lambda_tv: float | None) -> torch.Tensor:
 
 
 def _latest_checkpoint(ckdir):
-    from pathlib import Path
-
     files = sorted(Path(ckdir).glob("ckpt_*.pt"))
     return files[-1] if files else None
 
@@ -91,17 +100,11 @@ _NON_RESULT_OPTIONS = ("iterations", "checkpoint_every", "log_every")
 def run_key(opts: PartitionOptions, **inputs) -> dict:
     """What a checkpoint must match to be resumed from: the options that shape the result and
     fingerprints of the inputs (``inputs``: name -> str)."""
-    import dataclasses
-
     d = {k: v for k, v in dataclasses.asdict(opts).items() if k not in _NON_RESULT_OPTIONS}
     return {**d, **{k: str(v) for k, v in inputs.items()}}
 
 
 def _save_checkpoint(ckdir, it, pm, opt, index, rows, opts, key) -> None:
-    from pathlib import Path
-
-    from ..io import atomic_path
-
     ckdir = Path(ckdir)
     blob = {"iteration": it, "pmodel": partition_blob(pm, opts), "optimizer": opt.state_dict(),
             "index": index.state_dict(), "log": rows, "key": key}
@@ -149,13 +152,6 @@ def fine_tune(pm: PartitionModel, data: list[dict], opts: PartitionOptions, ckdi
     Raises:
         gdiff.errors.TrainingError: the loss became NaN/inf (names iteration and checkpoint).
     """
-    import time as _time
-    from pathlib import Path
-
-    from ..errors import TrainingError
-    from ..log import progress
-    from ..splat.losses import l1
-
     if not data:
         raise ValueError("no training views")
     index = NeighbourIndex(opts.knn_k, opts.knn_samples, opts.knn_refresh, opts.seed)
@@ -249,10 +245,6 @@ def fine_tune(pm: PartitionModel, data: list[dict], opts: PartitionOptions, ckdi
 def _cache_weights(pm: PartitionModel, data: list[dict]):
     """Frozen geometry: the activated Gaussians per training time (no grad) and the
     :class:`BlendWeights` of every view in ``data`` (same order)."""
-    import time as _time
-
-    from ..log import progress
-
     t0 = _time.perf_counter()
     with torch.no_grad():
         gs = {t: pm.fit.at_time(t) for t in sorted({float(v["time"]) for v in data})}
@@ -291,18 +283,6 @@ def train_partition(fit_model_path, cameras_json, keyframes_csv, scene_dir, out_
     Returns:
         summary dict (counts of Gaussians, mean key-pose IoU, seconds).
     """
-    import shutil
-    import time as _time
-    from pathlib import Path
-
-    import pandas as pd
-
-    from ..cameras import Camera
-    from ..device import resolve_device
-    from ..io import write_csv, write_json
-    from ..splat.gaussians import camera_extent
-    from ..splat.model import load_model
-
     opts = options or PartitionOptions()
     dev = resolve_device(device)
     out = Path(out_dir)
@@ -334,8 +314,6 @@ def train_partition(fit_model_path, cameras_json, keyframes_csv, scene_dir, out_
     save_partition_model(pm, out / "model.pt", opts)
     write_csv(out / "train_log.csv", pd.DataFrame(rows))
     prob = pm.gaussian_probability().detach().cpu().numpy().astype(np.float32)
-    from ..io import atomic_path
-
     with atomic_path(out / "probability.npy") as tmp:
         np.save(tmp, prob)
     counts = write_split_ply(pm, out, opts.threshold)
@@ -353,8 +331,6 @@ def train_partition(fit_model_path, cameras_json, keyframes_csv, scene_dir, out_
 
 
 def _sha1(path) -> str:
-    import hashlib
-
     h = hashlib.sha1()
     with open(path, "rb") as f:
         for block in iter(lambda: f.read(1 << 20), b""):

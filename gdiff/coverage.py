@@ -26,14 +26,14 @@ from .track import world_points
 
 
 @dataclass
-class KeyView:
+class DepthView:
     """A training view rendered at its own time: ``camera`` and its z-depth float [H, W]."""
 
     camera: Camera
     depth: np.ndarray
 
 
-def _sees(P: np.ndarray, finite: np.ndarray, v: KeyView, depth_tol: float) -> np.ndarray:
+def _sees(P: np.ndarray, finite: np.ndarray, v: DepthView, depth_tol: float) -> np.ndarray:
     """bool [N]: ``v`` sees the world points ``P`` [N, 3] (see :func:`view_count`)."""
     c = v.camera
     Q = (P - c.c2w[:3, 3]) @ c.c2w[:3, :3]  # world -> camera (rotation transposed)
@@ -51,7 +51,7 @@ def _sees(P: np.ndarray, finite: np.ndarray, v: KeyView, depth_tol: float) -> np
     return seen
 
 
-def _rays(P: np.ndarray, v: KeyView) -> np.ndarray:
+def _rays(P: np.ndarray, v: DepthView) -> np.ndarray:
     """Unit directions float32 [N, 3] from the centre of ``v``'s camera to the points ``P``."""
     d = (P - v.camera.c2w[:3, 3]).astype(np.float32)
     n = np.sqrt(np.einsum("ij,ij->i", d, d))
@@ -62,7 +62,7 @@ def _rays(P: np.ndarray, v: KeyView) -> np.ndarray:
 CHUNK = 1 << 16
 
 
-def view_count(points: np.ndarray, views: list[KeyView], depth_tol: float,
+def view_count(points: np.ndarray, views: list[DepthView], depth_tol: float,
                parallax: bool = False):
     """Number of ``views`` that see each world point, int [...] for ``points`` [..., 3].
 
@@ -102,7 +102,7 @@ def view_count(points: np.ndarray, views: list[KeyView], depth_tol: float,
     return count.reshape(shape)
 
 
-def observed(depth: np.ndarray, camera: Camera, views: list[KeyView], depth_tol: float = 0.05,
+def observed(depth: np.ndarray, camera: Camera, views: list[DepthView], depth_tol: float = 0.05,
              min_views: int = 1, alpha: np.ndarray | None = None,
              alpha_min: float = 0.5, min_parallax: float = 0.0) -> np.ndarray:
     """bool [H, W]: pixels of a frame (z-depth [H, W], ``camera``) rendered at time t whose

@@ -31,7 +31,7 @@ import pandas as pd
 
 from .cameras import Camera
 from .change import CompareOptions, change_masks, decide, pose_stats
-from .coverage import KeyView, observed
+from .coverage import DepthView, observed
 from .errors import SceneError
 from .io import read_ids, read_json, write_csv, write_ids, write_image, write_json, write_mask
 from .log import progress
@@ -86,17 +86,17 @@ def track_paths(frames: dict[Key, dict], segmenter: Segmenter,
     return ids, tracks
 
 
-def key_views(frames, keys: dict[tuple[str, int], int] | None) -> dict[int, list[KeyView]]:
+def key_views(frames, keys: dict[tuple[str, int], int] | None) -> dict[int, list[DepthView]]:
     """Key views per time for :mod:`gdiff.coverage`: ``keys[(path, i)] = time`` (0 or 1) names
     the path frames that are training cameras of that time; each contributes its camera and
     its depth rendered at that time (``frames``: dict or callable key -> frame dict). Frames
     without depth or camera are skipped."""
     get = frames if callable(frames) else (lambda k: (frames or {}).get(k, {}))
-    out: dict[int, list[KeyView]] = {0: [], 1: []}
+    out: dict[int, list[DepthView]] = {0: [], 1: []}
     for (p, i), time in sorted((keys or {}).items()):
         f = get((p, TIMES[int(time)], i))
         if f.get("depth") is not None and f.get("camera") is not None:
-            out[int(time)].append(KeyView(f["camera"], f["depth"]))
+            out[int(time)].append(DepthView(f["camera"], f["depth"]))
     return out
 
 

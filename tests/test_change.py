@@ -300,27 +300,27 @@ def _plane_camera(x: float, f: float = 30.0):
 
 
 def test_view_count_respects_frustum_and_occlusion():
-    from gdiff.coverage import KeyView, observed, view_count
+    from gdiff.coverage import DepthView, observed, view_count
 
     cam = _plane_camera(0.0)
     z = np.full((H, W), 5.0, np.float32)
     key = _plane_camera(4.0)  # sees world x in [-1, 9] on the plane
     zk = np.full((H, W), 5.0, np.float32)
     zk[:, 50:] = 3.0  # a nearer surface hides the plane from the key view there
-    seen = observed(z, cam, [KeyView(key, zk)], depth_tol=0.05)
+    seen = observed(z, cam, [DepthView(key, zk)], depth_tol=0.05)
     u = np.arange(W) + 0.5
     x = (u - W / 2) / 30.0 * 5.0  # world x of each column on the plane
     uk = (x - 4.0) / 5.0 * 30.0 + W / 2  # its column in the key view
     expect = (uk >= 0) & (uk < 50)
     assert (seen == expect[None, :]).all()
     # two key views: the count adds up; min_views asks for both
-    both = observed(z, cam, [KeyView(key, zk), KeyView(cam, z)], 0.05, min_views=2)
+    both = observed(z, cam, [DepthView(key, zk), DepthView(cam, z)], 0.05, min_views=2)
     assert (both == expect[None, :]).all()
-    assert view_count(np.full((3, 3), np.nan), [KeyView(cam, z)], 0.05).sum() == 0
+    assert view_count(np.full((3, 3), np.nan), [DepthView(cam, z)], 0.05).sum() == 0
     # parallax: a plane point straight ahead of cam, seen by cam and key; their rays differ
     # by atan(4 / 5) = 38.7 degrees (a single direction would leave its depth undetermined)
     plane = np.full((H, W), 5.0, np.float32)
-    views = [KeyView(cam, plane), KeyView(key, plane)]
+    views = [DepthView(cam, plane), DepthView(key, plane)]
     n, ang = view_count(np.array([[0.0, 0.0, 5.0]]), views, 0.05, parallax=True)
     assert n[0] == 2 and ang[0] == pytest.approx(np.degrees(np.arctan(4 / 5)), abs=1e-3)
     wide = observed(plane, cam, views, 0.05, min_views=2, min_parallax=30.0)

@@ -126,7 +126,7 @@ class FitOptions:
     lr_deform_final: float = 1e-4
     # spherical harmonics
     sh_degree: int = 3
-    sh_degree_interval: int = 500  # raise the active degree every N iterations
+    sh_degree_interval: int = 375  # raise the active degree every N iterations (3 at 1125)
     # adaptive density control (iterations are global: coarse then fine)
     init_opacity: float = 0.1
     init_max_scale: float = 0.05  # largest initial Gaussian scale, x extent

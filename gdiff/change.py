@@ -251,10 +251,10 @@ def pose_stats(ids0: np.ndarray, ids1: np.ndarray, o: CompareOptions,
     because shadows or glare moved) unless another ID of the same footprint took its place
     at the other time (:func:`_swapped`: an object replaced by one of the same shape), or
     when more than a quarter of it is hidden at the other time behind a nearer surface
-    (disoccluded). Exception to the first
-    rule: with key-view coverage, a region surrounded by the staying surface that shows that
-    surface's colours at the other time and stands out from it at its own time is a flat
-    object removed from or put onto it (:func:`_support_shows`) and may be confirmed so.
+    (disoccluded). Exception to the first two rules: with key-view coverage, a region
+    surrounded by the staying surface that shows that surface's colours at the other time and
+    stands out from it at its own time is a flat object removed from or put onto it
+    (:func:`_support_shows`) and may be confirmed so.
     """
     has_depth = depth0 is not None and depth1 is not None
     has_rgb = rgb0 is not None and rgb1 is not None

@@ -594,3 +594,34 @@ def test_checkpoint_of_other_options_is_not_resumed(tmp_path, caplog):
     with caplog.at_level("INFO", logger="gdiff.partition"):
         run(4, 2.0)
     assert "resuming" in caplog.text and "iteration 3" in caplog.text
+
+
+def test_blend_and_neighbour_gradients_are_reproducible_with_threads():
+    """The gradients of the cached-weight blend and of L3d gather repeated Gaussians; they sum
+    those repeats in the same order on every run with several threads, so training (and its
+    resume from a checkpoint) is reproducible."""
+    from gdiff.partition import BlendWeights, neighbour_kl, render_blended
+
+    g = torch.Generator().manual_seed(0)
+    n, pairs, side = 20000, 400_000, 200
+    bw = BlendWeights(pix=torch.sort(torch.randint(0, side * side, (pairs,), generator=g))[0].int(),
+                      gid=torch.randint(0, n, (pairs,), generator=g).int(),
+                      weight=torch.rand(pairs, generator=g), alpha=torch.ones(side * side),
+                      width=side, height=side)
+    sample = torch.randint(0, n, (5000,), generator=g)
+    nbr = torch.randint(0, n, (5000, 16), generator=g)
+    w = torch.randn(side, side, generator=g)
+    logits0 = torch.randn(n, 2, generator=g)
+    threads = torch.get_num_threads()
+    torch.set_num_threads(4)
+    try:
+        grads = []
+        for _ in range(4):
+            z = torch.randn(n, generator=torch.Generator().manual_seed(1)).requires_grad_(True)
+            logits = logits0.clone().requires_grad_(True)
+            ((render_blended(bw, z) * w).sum() + neighbour_kl(logits, sample, nbr)).backward()
+            grads.append((z.grad, logits.grad))
+    finally:
+        torch.set_num_threads(threads)
+    for gz, gl in grads[1:]:
+        assert torch.equal(gz, grads[0][0]) and torch.equal(gl, grads[0][1])

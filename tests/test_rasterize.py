@@ -371,8 +371,8 @@ def test_options_from_config():
         from_config(R.RasterizeOptions, {"tile": 8}, "rasterize")
 
 
-@pytest.mark.skipif(not _cpp_available(), reason="C++ kernel could not be built")
-def test_cpp_gradients_are_reproducible_with_threads():
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_gradients_are_reproducible_with_threads(backend):
     """Gradients summed over tiles on several threads come out bitwise equal on every run
     (training resumed from a checkpoint must follow the uninterrupted run exactly)."""
     sc = random_scene(3000, seed=7, n_cams=1, width=96, height=64, scale_range=(0.01, 0.3),
@@ -386,7 +386,7 @@ def test_cpp_gradients_are_reproducible_with_threads():
         for _ in range(6):
             params = [sc[k].clone().requires_grad_(True) for k in names]
             out, _, _ = R.rasterize(*params, sc["viewmats"], sc["Ks"], sc["width"],
-                                    sc["height"], backend="cpp", tile_size=8)
+                                    sc["height"], backend=backend, tile_size=8)
             (out * w).sum().backward()
             grads.append([p.grad for p in params])
     finally:

@@ -97,8 +97,10 @@ def neighbour_kl(logits: torch.Tensor, sample: torch.Tensor, neighbours: torch.T
         scalar = 1/(m k) sum_j sum_i KL(P_j || P_i), in nats.
     """
     logp = F.log_softmax(logits, dim=-1)
-    ls = logp[sample].unsqueeze(1)           # [m, 1, 2]
-    ln = logp[neighbours]                    # [m, k, 2]
+    # index_select, not logp[idx]: its backward sums repeated rows in a fixed order, so a
+    # training step is reproducible on several threads (CPU index_put accumulates do not)
+    ls = logp.index_select(0, sample).unsqueeze(1)                                   # [m, 1, 2]
+    ln = logp.index_select(0, neighbours.reshape(-1)).reshape(*neighbours.shape, -1)  # [m, k, 2]
     return (ls.exp() * (ls - ln)).sum(-1).mean()
 
 

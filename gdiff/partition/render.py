@@ -129,7 +129,7 @@ def blend_weights(g, camera) -> BlendWeights:
 def render_blended(bw: BlendWeights, values: torch.Tensor) -> torch.Tensor:
     """Blend per-Gaussian ``values`` [N] or [N, D] with cached weights: [H, W] or [H, W, D]
     (no background term). Differentiable w.r.t. ``values``."""
-    v = values[bw.gid]
+    v = values.index_select(0, bw.gid)  # its backward (index_add) sums in a fixed order
     w = bw.weight.to(values.dtype)
     v = v * (w if v.dim() == 1 else w[:, None])
     out = values.new_zeros((bw.height * bw.width,) + tuple(values.shape[1:])).index_add(

@@ -262,9 +262,11 @@ def rasterize_torch(means2d: torch.Tensor, conics: torch.Tensor, colors: torch.T
             holders.append((ci, g, holder))
             m = _GatherAbsGrad.apply(means2d[ci], g, holder)
         else:
-            m = means2d[ci, g]
-        sig = _sigma(m, conics[ci, g], px, py)
-        alpha = torch.clamp_max(opacities[ci, g] * torch.exp(-sig), ALPHA_MAX)
+            m = means2d[ci].index_select(0, g)
+        # index_select, not x[ci, g]: its backward sums a Gaussian's pixels in a fixed order
+        # (a CPU index_put accumulate does not), so gradients are reproducible on threads
+        sig = _sigma(m, conics[ci].index_select(0, g), px, py)
+        alpha = torch.clamp_max(opacities[ci].index_select(0, g) * torch.exp(-sig), ALPHA_MAX)
         logt = torch.log1p(-alpha.double())
         csum = torch.cumsum(logt, 0)
         excl = csum - logt
@@ -274,7 +276,7 @@ def rasterize_torch(means2d: torch.Tensor, conics: torch.Tensor, colors: torch.T
         T = torch.exp(excl - base)
         live = (T * (1.0 - alpha.double())) > T_MIN
         wgt = torch.where(live, alpha * T.to(alpha.dtype), torch.zeros_like(alpha))
-        feat = colors[ci, g] * wgt[:, None]
+        feat = colors[ci].index_select(0, g) * wgt[:, None]
         out = colors.new_zeros(H * W, D).index_add(0, pix, feat)
         acc = wgt.new_zeros(H * W).index_add(0, pix, wgt)
         outs.append(out.reshape(H, W, D))

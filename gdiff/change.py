@@ -44,12 +44,12 @@ import cv2
 import numpy as np
 import pandas as pd
 from scipy.optimize import linear_sum_assignment
-from scipy.sparse import coo_matrix
-from scipy.sparse.csgraph import connected_components
 
 from .appearance import region_similarity, texture as image_texture
 from .errors import ConfigError
 from .io import srgb_to_linear
+from .track import (TrackFrame, TrackOptions, labels_from_instances, link_groups,
+                    track_sequence, world_points)
 
 log = logging.getLogger("gdiff.change")
 
@@ -291,8 +291,6 @@ def pose_stats(ids0: np.ndarray, ids1: np.ndarray, o: CompareOptions,
         if z is None or camera is None:
             return None
         if f"P{time}" not in cache:
-            from .track import world_points
-
             cache[f"P{time}"] = world_points(z, camera)
         return cache[f"P{time}"]
 
@@ -425,8 +423,8 @@ def _support_shows(reg0: np.ndarray, reg1: np.ndarray, cont0: np.ndarray, cont1:
     :func:`_normalised_chroma` pair of the render at time t. The surroundings at each time are
     a ring of width ~1/4 of the region's size on the IDs that stay (minus the region); at
     least 3/4 of the ring must lie on them at both times (a region next to an object that
-    changed - its contact shadow or rim - is not surrounded by the staying surface). Their colours agree
-    when the Bhattacharyya coefficient of the chromaticity histograms is >=
+    changed - its contact shadow or rim - is not surrounded by the staying surface). Their
+    colours agree when the Bhattacharyya coefficient of the chromaticity histograms is >=
     ``texture_color_similarity``; the caller still needs the region's own colours to differ
     between the times (a moved shadow keeps its chromaticity under white light)."""
     if known is None:
@@ -541,18 +539,15 @@ def _group_instances(df: pd.DataFrame) -> None:
         return
     side = [int(df.at[i, "n_t1"] > df.at[i, "n_t0"]) for i in ch]
     pos = {int(df.at[i, "id"]): k for k, i in enumerate(ch)}
-    rows, cols = [], []
+    links = []
     for k, a in enumerate(ch):
         partner = pos.get(int(df.at[a, "partner"]))
         if partner is not None:
-            rows.append(k)
-            cols.append(partner)
+            links.append((k, partner))
         for j in range(k + 1, len(ch)):
             if side[k] == side[j] and not _apart(df.at[a, "_pos"], df.at[ch[j], "_pos"]):
-                rows.append(k)
-                cols.append(j)
-    graph = coo_matrix((np.ones(len(rows)), (rows, cols)), shape=(len(ch), len(ch)))
-    _, group = connected_components(graph, directed=False)
+                links.append((k, j))
+    group = link_groups(len(ch), links)
     for g in np.unique(group):
         members = [ch[k] for k in np.flatnonzero(group == g)]
         head = max(members, key=lambda i: df.at[i, "area"])
@@ -627,8 +622,6 @@ def detect_changes_pair(rgb0: np.ndarray, rgb1: np.ndarray, depth0: np.ndarray |
     """
     from .cameras import Camera
     from .segment import SegmentOptions, make_segmenter
-    from .track import TrackFrame, TrackOptions, labels_from_instances, track_sequence
-
     o = options or CompareOptions()
     seg = make_segmenter(segment_options or SegmentOptions())
     H, W = rgb0.shape[:2]

@@ -451,6 +451,15 @@ def track_positions(ids: list[np.ndarray], frames: list[TrackFrame]
     return out
 
 
+def link_groups(n: int, links: list[tuple[int, int]]) -> np.ndarray:
+    """Group label int [n] of items 0..n-1 joined (transitively) by the undirected ``links``
+    [(i, j), ...]: the connected components of the link graph (scipy)."""
+    i, j = (np.array(links, np.int64).reshape(-1, 2).T if links
+            else (np.zeros(0, np.int64), np.zeros(0, np.int64)))
+    graph = coo_matrix((np.ones(len(i)), (i, j)), shape=(n, n))
+    return connected_components(graph, directed=False)[1]
+
+
 def _same_place(pa: np.ndarray, sa: float, pb: np.ndarray, sb: float, dist_frac: float) -> bool:
     """Two tracks' (median world point [3], metric size) at one time: the same object when the
     points are closer than ``dist_frac`` x the smaller size and the sizes agree within 1.5x."""
@@ -483,9 +492,7 @@ def merge_by_position(ids: list[np.ndarray], frames: list[TrackFrame],
                 links.append((i, j))
     if not links:
         return {}
-    i, j = np.array(links).T
-    graph = coo_matrix((np.ones(len(i)), (i, j)), shape=(len(tr), len(tr)))
-    _, label = connected_components(graph, directed=False)
+    label = link_groups(len(tr), links)
     # a group may merge only tracks that never share a frame
     out = {}
     groups: dict[int, list[int]] = {}

@@ -349,8 +349,7 @@ def pose_stats(ids0: np.ndarray, ids1: np.ndarray, o: CompareOptions,
                 disoccluded = region.sum() < 0.75 * full
             if cand and has_depth:
                 evidence = float(ev_depth()[region].mean()) if region.any() else 0.0
-            if cand and has_rgb:
-                sim = region_similarity(*grads(), region, o.min_texture)
+            texture_ok = True
             if cand and has_depth and region.any():
                 # a piece split off a segment that stays at the other time (same place):
                 # the surface is still there, only a change of geometry shows a change
@@ -358,13 +357,13 @@ def pose_stats(ids0: np.ndarray, ids1: np.ndarray, o: CompareOptions,
                 # likewise a region whose surface did not move, unless another instance took
                 # its place (an object swapped for one of the same shape): a lighting change
                 # re-segments a floor under moved shadows or glare, but leaves its depth
-                same_place = (~raw_depth_change()[region]).mean() >= 0.5 and not _swapped(
-                    ids0, ids1, t, region0 & region, region1 & region, o)
-                if disoccluded or ((on_cont >= 0.5 * region.sum() or same_place)
-                                   and not (has_rgb and _support_shows(
-                                       region0 & region, region1 & region, cont0, cont1,
-                                       chroma, o, known))):
-                    sim = float("nan")
+                same_surface = on_cont >= 0.5 * region.sum() or (
+                    (~raw_depth_change()[region]).mean() >= 0.5
+                    and not _swapped(ids0, ids1, t, region0 & region, region1 & region, o))
+                texture_ok = not (disoccluded or (same_surface and not (has_rgb and _support_shows(
+                    region0 & region, region1 & region, cont0, cont1, chroma, o, known))))
+            if cand and has_rgb and texture_ok:
+                sim = region_similarity(*grads(), region, o.min_texture)
             if cand:
                 differs = sim < o.same_similarity
                 if differs and o.texture_color_similarity < 1:

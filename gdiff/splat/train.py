@@ -24,9 +24,9 @@ Training (after Wu et al., CVPR 2024, "4D Gaussian Splatting"):
 Per-Gaussian changes over time (``dopacity``, ``dsh0``, ``dshN``; see
 :mod:`gdiff.splat.model`) are learnt only for Gaussians in view (centre inside the image, any
 opacity) in at least ``time_min_views`` training views of *each* time; the others keep one
-state for both times. Before and after images are often taken from different places (other heights, other
-sides), and a part of the scene seen at one time only carries no evidence of how it looks at
-the other: with the change terms free, every update from the time that sees it moves the
+state for both times. Before and after images are often taken from different places (other
+heights, other sides), and a part of the scene seen at one time only carries no evidence of
+how it looks at the other: with the change terms free, every update from the time that sees it moves the
 shared value and the change term in opposite directions (for both parameters Adam takes
 steps of the same size), so the other time keeps its initial (after an opacity reset:
 transparent) state and novel views at that time show holes. Gating the terms lets the shared

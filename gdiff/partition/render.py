@@ -13,7 +13,7 @@ import torch
 from ..cameras import stack_for_render
 from ..splat.rasterize import (ALPHA_MAX, ALPHA_MIN, SIGMA_MAX, T_MIN, _pixel_pairs, _sigma,
                                covariance_3d, opacity_footprint, project_gaussians, rasterize)
-from ..splat.sh import sh_to_color
+from ..splat.reflection import shade
 from .head import CHANGED, UNCHANGED, ChangeHead
 
 
@@ -37,7 +37,7 @@ def render_features(g, encoding: torch.Tensor, camera, background: torch.Tensor 
     feats = encoding
     if with_rgb:
         campos = torch.as_tensor(camera.center, dtype=g.means.dtype, device=dev)
-        rgb = sh_to_color(g.sh_degree, g.sh, g.means - campos)  # [N, 3]
+        rgb = shade(g, campos[None])[0]  # [N, 3]
         feats = torch.cat([rgb, encoding], dim=-1)
     render, alpha, _ = rasterize(g.means, g.quats, g.scales, g.opacities, feats, viewmats, Ks,
                                  camera.width, camera.height)

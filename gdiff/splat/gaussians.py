@@ -68,7 +68,10 @@ class Gaussians:
 
     means [N, 3] world units; quats [N, 4] unit wxyz; scales [N, 3] standard deviations (world
     units, > 0); opacities [N] in (0, 1); sh [N, K, 3] SH coefficients (K = (max degree+1)^2);
-    ``sh_degree`` is the degree to evaluate (coefficients beyond it are ignored).
+    ``sh_degree`` is the degree to evaluate (coefficients beyond it are ignored). Optional
+    mirror-direction specular term (:mod:`gdiff.splat.reflection`): ``reflectivity`` [N] strength in
+    (0, 1) and ``environment``, a callable mapping world directions [..., 3] to radiance
+    [..., 3] at this time; both None for plain SH colour.
     """
 
     means: torch.Tensor
@@ -77,6 +80,8 @@ class Gaussians:
     opacities: torch.Tensor
     sh: torch.Tensor
     sh_degree: int
+    reflectivity: torch.Tensor | None = None
+    environment: Callable[[torch.Tensor], torch.Tensor] | None = None
 
     def __len__(self) -> int:
         return int(self.means.shape[0])
@@ -84,13 +89,15 @@ class Gaussians:
     def detach(self) -> "Gaussians":
         return replace(self, means=self.means.detach(), quats=self.quats.detach(),
                        scales=self.scales.detach(), opacities=self.opacities.detach(),
-                       sh=self.sh.detach())
+                       sh=self.sh.detach(),
+                       reflectivity=None if self.reflectivity is None else self.reflectivity.detach())
 
     def subset(self, index: torch.Tensor) -> "Gaussians":
         """The Gaussians selected by a bool mask or index tensor over N."""
         return replace(self, means=self.means[index], quats=self.quats[index],
                        scales=self.scales[index], opacities=self.opacities[index],
-                       sh=self.sh[index])
+                       sh=self.sh[index],
+                       reflectivity=None if self.reflectivity is None else self.reflectivity[index])
 
 
 # --------------------------------------------------------------------------------------------

@@ -14,7 +14,9 @@ a Gaussian can exist at one time only (an added or removed object) from the firs
 on, without waiting for the deformation field; likewise ``dsh0`` [N, 1, 3] changes the
 diffuse colour, ``sh0 + (2t - 1) dsh0`` (lighting: moving shadows are sharper than the
 field's grid) and ``dshN`` [N, K-1, 3] the view-dependent SH, ``shN + (2t - 1) dshN``
-(highlights on glossy surfaces move with the light). Any of them may be absent (the fit's
+(highlights on glossy surfaces move with the light). With ``reflection_height`` > 0,
+``reflectivity`` [N] (logit of a strength) and ``model.environment`` add a highlight looked up
+in the mirror direction (:mod:`gdiff.splat.reflection`). Any of them may be absent (the fit's
 ``time_opacity`` / ``time_color`` / ``time_specular``; files from before ``dshN`` load with
 no view-dependent change). While fitting, ``time_gate`` [N] (see :meth:`raw_at_time`)
 switches these terms off for Gaussians not yet observed at both times; the saved model has
@@ -31,6 +33,7 @@ facts about the fit (training intrinsics, scene extent, ...).
 
 from __future__ import annotations
 
+import functools
 import os
 from pathlib import Path
 
@@ -42,6 +45,9 @@ from ..errors import ModelFileError
 from ..io import atomic_path
 from .deform import DeformConfig, Deformation
 from .gaussians import TIME_TERMS, Gaussians, init_params, num_sh_coeffs
+from .reflection import Environment
+
+INIT_REFLECTIVITY_LOGIT = -2.0  # strength sigmoid(-2) ~ 0.12 before it is learnt
 
 FORMAT = "gdiff.GaussianModel4D"
 VERSION = 1
@@ -54,10 +60,13 @@ class GaussianModel4D(nn.Module):
         n: number of Gaussians (parameters start at neutral values; see :meth:`from_points`).
         sh_degree: largest SH degree stored (K = (sh_degree+1)^2 coefficients).
         deform: deformation architecture, or None for a static model.
+        reflection_height: rows of the environment maps of the mirror-direction specular term
+            (:mod:`gdiff.splat.reflection`; adds ``splats["reflectivity"]`` [N] and
+            ``model.environment``), 0 for none.
     """
 
     def __init__(self, n: int = 0, sh_degree: int = 3,
-                 deform: DeformConfig | dict | None = None):
+                 deform: DeformConfig | dict | None = None, reflection_height: int = 0):
         super().__init__()
         self.sh_degree = int(sh_degree)
         k = num_sh_coeffs(self.sh_degree)
@@ -81,6 +90,10 @@ class GaussianModel4D(nn.Module):
             self.deformation: Deformation | None = Deformation(deform)
         else:
             self.deformation = None
+        self.environment: Environment | None = None
+        if reflection_height > 0:
+            self.splats["reflectivity"] = nn.Parameter(torch.full((n,), INIT_REFLECTIVITY_LOGIT))
+            self.environment = Environment(reflection_height)
         self.register_buffer("active_sh_degree", torch.tensor(0, dtype=torch.long))
         self.register_buffer("deform_on", torch.tensor(False))
 
@@ -88,11 +101,12 @@ class GaussianModel4D(nn.Module):
     @classmethod
     def from_points(cls, xyz: np.ndarray, rgb: np.ndarray, sh_degree: int = 3,
                     deform: DeformConfig | None = None, init_opacity: float = 0.1,
-                    max_scale: float | None = None) -> "GaussianModel4D":
+                    max_scale: float | None = None,
+                    reflection_height: int = 0) -> "GaussianModel4D":
         """Gaussians at SfM points xyz [P, 3] with colours rgb [P, 3] in [0, 1]; initial
         scales at most ``max_scale`` (world units, see :func:`init_params`)."""
         params = init_params(xyz, rgb, sh_degree, init_opacity, max_scale=max_scale)
-        model = cls(len(xyz), sh_degree, deform)
+        model = cls(len(xyz), sh_degree, deform, reflection_height)
         with torch.no_grad():
             for k, v in params.items():
                 model.splats[k].copy_(v)
@@ -101,13 +115,15 @@ class GaussianModel4D(nn.Module):
     def config(self) -> dict:
         """Small dict that, with :meth:`state_dict`, rebuilds the module."""
         return {"sh_degree": self.sh_degree,
-                "deform": self.deformation.cfg.to_dict() if self.deformation else None}
+                "deform": self.deformation.cfg.to_dict() if self.deformation else None,
+                "reflection_height": self.environment.height if self.environment else 0}
 
     @classmethod
     def from_state(cls, config: dict, state_dict: dict) -> "GaussianModel4D":
         """Rebuild from :meth:`config` and a state dict (any N, extra ``splats.*`` entries)."""
         n = int(state_dict["splats.means"].shape[0])
-        model = cls(n, config["sh_degree"], config.get("deform"))
+        model = cls(n, config["sh_degree"], config.get("deform"),
+                    config.get("reflection_height", 0))
         state_dict = dict(state_dict)
         ref = state_dict["splats.means"]
         # models from before the time-opacity term: no change of opacity over time
@@ -178,11 +194,16 @@ class GaussianModel4D(nn.Module):
         ``time_gate``: see :meth:`raw_at_time`."""
         r = self.raw_at_time(t, time_gate)
         q = r["quats"]
+        spec = env = None
+        if self.environment is not None and "reflectivity" in self.splats:
+            spec = torch.sigmoid(self.splats["reflectivity"])
+            env = functools.partial(self.environment.radiance, t=t)
         return Gaussians(means=r["means"],
                          quats=q / q.norm(dim=-1, keepdim=True).clamp_min(1e-12),
                          scales=torch.exp(r["scales"]),
                          opacities=torch.sigmoid(r["opacities"]),
-                         sh=r["sh"], sh_degree=int(self.active_sh_degree))
+                         sh=r["sh"], sh_degree=int(self.active_sh_degree),
+                         reflectivity=spec, environment=env)
 
 
 # -------------------------------------------------------------------- files

@@ -456,6 +456,12 @@ def opacity_footprint(extents: torch.Tensor, visible: torch.Tensor, opacities: t
     return extents * scale[None, :, None], visible & (reach > 0)[None, :]
 
 
+def camera_centers(viewmats: torch.Tensor) -> torch.Tensor:
+    """World positions [C,3] of the centres of cameras with world-to-camera ``viewmats``
+    [C,4,4] (``-R^T t``)."""
+    return -torch.einsum("cji,cj->ci", viewmats[:, :3, :3], viewmats[:, :3, 3])
+
+
 def _features(colors, sh_degree, means, viewmats, C, N) -> torch.Tensor:
     """Per-camera features [C,N,D]: plain features, or SH evaluated from each camera centre."""
     if sh_degree is None:
@@ -470,9 +476,7 @@ def _features(colors, sh_degree, means, viewmats, C, N) -> torch.Tensor:
             and colors.shape[-3] == N and (colors.dim() == 3 or colors.shape[0] == C)):
         raise ValueError(f"SH colors must be [N,K,3] or [C,N,K,3] with K >= {K} for sh_degree "
                          f"{sh_degree}; got {tuple(colors.shape)}")
-    R = viewmats[:, :3, :3]
-    campos = -torch.einsum("cji,cj->ci", R, viewmats[:, :3, 3])  # -R^T t, [C,3]
-    dirs = means[None, :, :] - campos[:, None, :]  # [C,N,3]
+    dirs = means[None, :, :] - camera_centers(viewmats)[:, None, :]  # [C,N,3]
     coeffs = colors if colors.dim() == 4 else colors[None]
     return sh_to_color(sh_degree, coeffs, dirs)
 

@@ -39,7 +39,8 @@ from ..errors import GdiffError, SceneError
 from ..io import atomic_path, write_image, write_json
 from .gaussians import Gaussians
 from .model import GaussianModel4D, load_model
-from .rasterize import rasterize
+from .rasterize import camera_centers, rasterize
+from .reflection import shade
 
 log = logging.getLogger("gdiff.splat.render")
 
@@ -57,11 +58,15 @@ def rasterize_gaussians(g: Gaussians, viewmats: torch.Tensor, Ks: torch.Tensor, 
                         height: int, background=None, render_mode: str = "RGB",
                         backend: str = "auto", absgrad: bool = False):
     """Rasterise activated Gaussians into C cameras (thin wrapper over
-    :func:`gdiff.splat.rasterize.rasterize` with SH colours). Returns its
-    ``(colors [C,H,W,X], alphas [C,H,W,1], meta)``."""
+    :func:`gdiff.splat.rasterize.rasterize` with SH colours, plus the mirror-direction term of
+    :mod:`gdiff.splat.reflection` when ``g`` has one). ``viewmats`` [C,4,4] world-to-camera.
+    Returns ``(colors [C,H,W,X], alphas [C,H,W,1], meta)``."""
     bg = _backgrounds(background, viewmats.shape[0], g.means.device, g.means.dtype)
-    return rasterize(g.means, g.quats, g.scales, g.opacities, g.sh, viewmats, Ks, width, height,
-                     sh_degree=g.sh_degree, backgrounds=bg, render_mode=render_mode,
+    colors, degree = g.sh, g.sh_degree
+    if g.environment is not None and g.reflectivity is not None and render_mode not in ("D", "ED"):
+        colors, degree = shade(g, camera_centers(viewmats)), None
+    return rasterize(g.means, g.quats, g.scales, g.opacities, colors, viewmats, Ks, width, height,
+                     sh_degree=degree, backgrounds=bg, render_mode=render_mode,
                      backend=backend, absgrad=absgrad)
 
 

@@ -124,6 +124,11 @@ class FitOptions:
     lr_grid_final: float = 1e-3
     lr_deform: float = 1e-3  # deformation MLP (x scene extent), decays over fine phase
     lr_deform_final: float = 1e-4
+    # mirror-direction reflection (glare, highlights; gdiff.splat.reflection)
+    reflection: bool = False  # add the shared-environment specular term
+    reflection_height: int = 16  # rows of each environment map (width 2x)
+    lr_reflectivity: float = 5e-2  # per-Gaussian reflection strength (logit)
+    lr_environment: float = 3e-2  # environment maps (softplus radiance)
     # spherical harmonics
     sh_degree: int = 3
     sh_degree_interval: int = 375  # raise the active degree every N iterations (3 at 1125)
@@ -183,6 +188,8 @@ class FitOptions:
             raise ValueError(f"background must be black, white or random, got {self.background!r}")
         if self.hexplane_time_resolution < 2:
             raise ValueError("hexplane_time_resolution must be >= 2")
+        if self.reflection_height < 2:
+            raise ValueError(f"reflection_height must be >= 2, got {self.reflection_height}")
         if len(self.hexplane_resolution) != 3:
             raise ValueError("hexplane_resolution needs 3 values (x, y, z)")
 
@@ -325,7 +332,8 @@ class Trainer:
         o, m = self.opts, self.model
         lrs = {"means": o.lr_means * self.extent, "scales": o.lr_scales, "quats": o.lr_quats,
                "opacities": o.lr_opacities, "dopacity": o.lr_dopacity, "sh0": o.lr_sh0,
-               "dsh0": o.lr_dsh0, "shN": o.lr_shN, "dshN": o.lr_dshN}
+               "dsh0": o.lr_dsh0, "shN": o.lr_shN, "dshN": o.lr_dshN,
+               "reflectivity": o.lr_reflectivity}
         groups = [{"params": [p], "lr": lrs.get(name, o.lr_sh0), "name": name}
                   for name, p in m.splats.items()]
         if m.deformation is not None:
@@ -333,6 +341,9 @@ class Trainer:
                            "name": "grid"})
             groups.append({"params": m.deformation.mlp_parameters(),
                            "lr": o.lr_deform * self.extent, "name": "deform"})
+        if m.environment is not None:
+            groups.append({"params": list(m.environment.parameters()), "lr": o.lr_environment,
+                           "name": "environment"})
         return torch.optim.Adam(groups, lr=0.0, eps=1e-15, fused=self.device.type in ("cpu", "cuda"))
 
     def _set_lrs(self, it: int) -> None:
@@ -584,7 +595,8 @@ def fit_scene(scene_dir: str | Path, cameras_json: str | Path, points_ply: str |
     torch.manual_seed(opts.seed)
     model = GaussianModel4D.from_points(xyz, rgb, opts.sh_degree, opts.deform_config(),
                                         opts.init_opacity,
-                                        opts.init_max_scale * extent)
+                                        opts.init_max_scale * extent,
+                                        opts.reflection_height if opts.reflection else 0)
     model = _drop_time_terms(model, opts).to(dev)
     trainer = Trainer(model, views, opts, extent)
     log.info("fit: %d images (%d before, %d after) at %dx%d, %d initial Gaussians, extent %.3f",

@@ -125,7 +125,7 @@ class FitOptions:
     lr_deform: float = 1e-3  # deformation MLP (x scene extent), decays over fine phase
     lr_deform_final: float = 1e-4
     # mirror-direction reflection (glare, highlights; gdiff.splat.reflection)
-    reflection: bool = False  # add the shared-environment specular term
+    reflection: bool = True  # add the shared-environment specular term (glare, highlights)
     reflection_height: int = 16  # rows of each environment map (width 2x)
     lr_reflectivity: float = 5e-2  # per-Gaussian reflection strength (logit)
     lr_environment: float = 3e-2  # environment maps (softplus radiance)

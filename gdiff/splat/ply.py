@@ -93,7 +93,7 @@ def write_gaussians(path: str | os.PathLike, g: Gaussians) -> None:
     names = (["x", "y", "z", "nx", "ny", "nz", "f_dc_0", "f_dc_1", "f_dc_2"] + _rest_names(k)
              + ["opacity", "scale_0", "scale_1", "scale_2", "rot_0", "rot_1", "rot_2", "rot_3"])
     cols = [means, np.zeros((n, 3), np.float32), sh[:, 0, :],
-            sh[:, 1:, :].transpose(0, 2, 1).reshape(n, -1),
+            sh[:, 1:, :].transpose(0, 2, 1).reshape(n, 3 * (k - 1)),
             np.log(opa / (1 - opa))[:, None], np.log(scales), quats]
     data = np.concatenate(cols, axis=1).astype(np.float32)
     arr = np.empty(n, dtype=[(name, "f4") for name in names])

@@ -66,6 +66,8 @@ def _param_groups(pm: PartitionModel, opts: PartitionOptions, extent: float) -> 
             groups.append({"name": name, "params": [p], "lr": lrs[name] * s})
         else:
             p.requires_grad_(False)
+    if fit.environment is not None:  # the light stays as fitted, like the colour-change terms
+        fit.environment.requires_grad_(False)
     if fit.deformation is not None:
         groups.append({"name": "grid", "params": fit.deformation.grid_parameters(),
                        "lr": fo["lr_grid_final"] * s})

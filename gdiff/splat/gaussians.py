@@ -69,9 +69,9 @@ class Gaussians:
     means [N, 3] world units; quats [N, 4] unit wxyz; scales [N, 3] standard deviations (world
     units, > 0); opacities [N] in (0, 1); sh [N, K, 3] SH coefficients (K = (max degree+1)^2);
     ``sh_degree`` is the degree to evaluate (coefficients beyond it are ignored). Optional
-    mirror-direction specular term (:mod:`gdiff.splat.reflection`): ``reflectivity`` [N] strength in
-    (0, 1) and ``environment``, a callable mapping world directions [..., 3] to radiance
-    [..., 3] at this time; both None for plain SH colour.
+    mirror-direction specular term (:mod:`gdiff.splat.reflection`): ``reflectivity`` [N]
+    strength in (0, 1) and ``environment``, a callable mapping world directions [..., 3] to
+    radiance [..., 3] at this time; both set or both None (plain SH colour).
     """
 
     means: torch.Tensor
@@ -87,17 +87,18 @@ class Gaussians:
         return int(self.means.shape[0])
 
     def detach(self) -> "Gaussians":
+        """The per-Gaussian tensors detached (``environment`` is kept as it is)."""
+        r = self.reflectivity
         return replace(self, means=self.means.detach(), quats=self.quats.detach(),
                        scales=self.scales.detach(), opacities=self.opacities.detach(),
-                       sh=self.sh.detach(),
-                       reflectivity=None if self.reflectivity is None else self.reflectivity.detach())
+                       sh=self.sh.detach(), reflectivity=None if r is None else r.detach())
 
     def subset(self, index: torch.Tensor) -> "Gaussians":
         """The Gaussians selected by a bool mask or index tensor over N."""
+        r = self.reflectivity
         return replace(self, means=self.means[index], quats=self.quats[index],
                        scales=self.scales[index], opacities=self.opacities[index],
-                       sh=self.sh[index],
-                       reflectivity=None if self.reflectivity is None else self.reflectivity[index])
+                       sh=self.sh[index], reflectivity=None if r is None else r[index])
 
 
 # --------------------------------------------------------------------------------------------

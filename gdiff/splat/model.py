@@ -195,7 +195,7 @@ class GaussianModel4D(nn.Module):
         r = self.raw_at_time(t, time_gate)
         q = r["quats"]
         spec = env = None
-        if self.environment is not None and "reflectivity" in self.splats:
+        if self.environment is not None:
             spec = torch.sigmoid(self.splats["reflectivity"])
             env = functools.partial(self.environment.radiance, t=t)
         return Gaussians(means=r["means"],

@@ -95,7 +95,7 @@ def shade(g, campos: torch.Tensor) -> torch.Tensor:
     the mirror-direction highlight."""
     dirs = g.means[None] - campos[:, None]  # [C, N, 3], camera centre -> Gaussian
     color = sh_to_color(g.sh_degree, g.sh[None], dirs)
-    if g.reflectivity is None or g.environment is None:
+    if g.environment is None:
         return color
     r = reflect(dirs, shortest_axis(g.quats, g.scales)[None])
     return color + g.reflectivity[None, :, None] * g.environment(r)

@@ -63,7 +63,7 @@ def rasterize_gaussians(g: Gaussians, viewmats: torch.Tensor, Ks: torch.Tensor, 
     Returns ``(colors [C,H,W,X], alphas [C,H,W,1], meta)``."""
     bg = _backgrounds(background, viewmats.shape[0], g.means.device, g.means.dtype)
     colors, degree = g.sh, g.sh_degree
-    if g.environment is not None and g.reflectivity is not None and render_mode not in ("D", "ED"):
+    if g.environment is not None and render_mode not in ("D", "ED"):
         colors, degree = shade(g, camera_centers(viewmats)), None
     return rasterize(g.means, g.quats, g.scales, g.opacities, colors, viewmats, Ks, width, height,
                      sh_degree=degree, backgrounds=bg, render_mode=render_mode,

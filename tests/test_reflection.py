@@ -91,7 +91,7 @@ def _floor_image(cam, ss=4):
 
 
 def _floor_model(reflection: bool) -> GaussianModel4D:
-    n_side = 48
+    n_side = 32
     g = (np.arange(n_side) + 0.5) / n_side * 2 - 1
     x, y = np.meshgrid(g, g)
     xyz = np.stack([x.ravel(), y.ravel(), np.zeros(x.size)], 1)
@@ -131,7 +131,17 @@ def _interior_psnr(pred, truth):
     return float(-10 * torch.log10(((pred.clamp(0, 1) - truth) ** 2)[inside].mean()))
 
 
-def test_highlight_learnt_from_some_views_appears_at_a_novel_view(tmp_path):
+@pytest.fixture
+def one_thread():
+    """Many small steps: one thread is as fast alone and ~10x faster than two threads when
+    the other test worker uses both cores too."""
+    n = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(n)
+
+
+def test_highlight_learnt_from_some_views_appears_at_a_novel_view(tmp_path, one_thread):
     torch.manual_seed(0)
     train = [_camera(a, 25.0 if a % 60 else 40.0) for a in range(0, 360, 30)]
     novel = [_camera(195.0, 34.0), _camera(165.0, 26.0)]  # facing the glare, between views
@@ -145,7 +155,7 @@ def test_highlight_learnt_from_some_views_appears_at_a_novel_view(tmp_path):
         scores[reflection] = _interior_psnr(pred, truth)
     # per-Gaussian SH sees each floor point's glare from one or two views and misplaces it;
     # the shared environment puts it where the mirror geometry does
-    # (measured: SH only 18.3 dB, with the reflection term 24.5 dB)
+    # (measured: SH only 18.5 dB, with the reflection term 24.6 dB)
     assert scores[True] > scores[False] + 3.0, scores
     # the term is saved and loaded with the model
     save_model(m, tmp_path / "model.pt")

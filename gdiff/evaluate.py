@@ -17,10 +17,12 @@ view (logged).
 Outputs in ``out_dir`` (``results/<scene>/eval/``), all written atomically:
 
 * ``metrics.csv`` — one row per (view, method): ``scene, view, method, P, R, F1, IoU, TP, FP,
-  FN, box_P, box_R, box_F1, box_AP, box_TP, box_FP, box_FN, seconds`` (see
-  :mod:`gdiff.metrics` for definitions and the NaN convention);
+  FN, box_P, box_R, box_F1, box_AP, box_TP, box_FP, box_FN, seconds, obj_N, obj_found, obj_R``
+  (objects: connected regions of ``mask_before``/``mask_after``, else of ``masks``, of at least
+  ``box_min_area``; see :mod:`gdiff.metrics` for definitions and the NaN convention);
 * ``boxes.csv`` — every predicted and ground-truth box (for AP pooled over views);
-* ``scene_summary.csv`` — per method: mean over views and pooled figures;
+* ``scene_summary.csv`` — per method: mean over views and pooled figures (``obj_R_pooled``:
+  objects found over objects, all views);
 * ``maps/<method>/NAME.png`` — each method's binary change map;
 * ``overlays/NAME.png`` — one row per method: image | prediction | ground truth | TP (green),
   FP (red), FN (blue), with the view's F1/IoU written on it.
@@ -46,13 +48,14 @@ from .errors import ConfigError, SceneError
 from .io import read_image, read_mask, write_csv, write_image, write_mask
 from .scene import list_images
 from .log import progress
-from .metrics import aggregate, score_view
+from .metrics import aggregate, object_regions, object_scores, score_view
 
 log = logging.getLogger("gdiff.evaluate")
 
 METHODS = ("pixel_diff", "idcompare", "partition")
 METRIC_COLUMNS = ["scene", "view", "method", "P", "R", "F1", "IoU", "TP", "FP", "FN",
-                  "box_P", "box_R", "box_F1", "box_AP", "box_TP", "box_FP", "box_FN", "seconds"]
+                  "box_P", "box_R", "box_F1", "box_AP", "box_TP", "box_FP", "box_FN", "seconds",
+                  "obj_N", "obj_found", "obj_R"]
 
 
 @dataclass
@@ -73,6 +76,10 @@ class EvalOptions:
     """idcompare: give the eval pair the fitted model's depth at the eval camera at t=0 and t=1
     (photos have no depth). Off by default: on the path-traced bench scenes the fitted depth at
     novel eval views added false evidence (pooled F1 0.885 -> 0.565 and 0.288 -> 0.202)."""
+    object_found_fraction: float = 0.5
+    """Object recall: an object (a connected region of eval/mask_before or eval/mask_after, else
+    of eval/masks) counts as found in a view when at least this fraction of its pixels is
+    predicted changed."""
     overlays: bool = True
     """Write overlays/NAME.png (image | prediction | GT | TP/FP/FN per method)."""
     overlay_max_side: int = 400
@@ -86,6 +93,8 @@ class EvalOptions:
             raise ValueError("box_iou must lie in (0, 1]")
         if not 0.0 <= self.box_min_area < 1.0:
             raise ValueError("box_min_area is a fraction of the image and must lie in [0, 1)")
+        if not 0.0 < self.object_found_fraction <= 1.0:
+            raise ValueError("object_found_fraction must lie in (0, 1]")
 
 
 # ------------------------------------------------------------------------------------ views
@@ -110,6 +119,23 @@ class EvalView:
         if self._gt is None:
             self._gt = read_mask(self.mask)
         return self._gt
+
+    def object_masks(self) -> list[np.ndarray]:
+        """The masks whose connected regions are this view's objects, bool [H, W] each:
+        ``mask_before`` and ``mask_after`` where the scene has them (a moved object is then one
+        object at each place), else the change mask itself."""
+        parts = [p for p in (self.mask_before, self.mask_after) if p is not None]
+        if not parts:
+            return [self.read_gt()]
+        h, w = self.read_gt().shape
+        out = []
+        for p in parts:
+            m = read_mask(p)
+            if m.shape != (h, w):
+                raise SceneError(f"{p}: size {m.shape[1]}x{m.shape[0]} differs from the change "
+                                 f"mask {self.mask} ({w}x{h}); object masks must match it")
+            out.append(m)
+        return out
 
     def read_image(self, t: int) -> np.ndarray:
         """Eval image at time ``t`` (0 before, 1 after), float32 [H, W, 3] in [0, 1], resized
@@ -292,6 +318,7 @@ def evaluate_scene(scene_dir: str | Path, cameras_json: str | Path | None, out_d
         gt = view.read_gt()
         h, w = gt.shape
         min_area = int(math.ceil(options.box_min_area * h * w))
+        objects = object_regions(view.object_masks(), min_area)
         preds: dict[str, Prediction] = {}
         for name, fn in methods.items():
             t0 = time.perf_counter()
@@ -303,6 +330,7 @@ def evaluate_scene(scene_dir: str | Path, cameras_json: str | Path | None, out_d
             seconds = time.perf_counter() - t0
             pred = _fit_to(pred, (h, w), f"{name} at view {view.name}")
             scores, boxes = score_view(pred.mask, gt, pred.prob, options.box_iou, min_area)
+            scores.update(object_scores(pred.mask, objects, options.object_found_fraction))
             rows.append({"scene": scene_name, "view": view.name, "method": name, **scores,
                          "seconds": seconds})
             box_frames.append(boxes.assign(scene=scene_name, view=view.name, method=name))

@@ -189,3 +189,37 @@ def test_idcompare_uses_model_depth_to_ignore_a_moved_shadow(tmp_path):
     on = E.EvalOptions(methods=["idcompare"], idcompare_depth=True)
     E.build_methods(on, depth=depth)["idcompare"](view)
     assert len(calls) == 4  # idcompare_depth=True: rendered at t=0 and t=1
+
+
+def test_object_recall_from_before_and_after_masks(tmp_path):
+    """A moved object is two object views (its place before, its place after); a method that
+    finds only the new place finds one of two. Without mask_before/mask_after the change mask's
+    regions are the objects."""
+    root, boxes = _scene(tmp_path)
+    before_box, after_box = (40, 4, 56, 16), boxes["000"]
+    mb = np.zeros((H, W), bool)
+    mb[before_box[1]:before_box[3], before_box[0]:before_box[2]] = True
+    ma = read_mask(root / "eval" / "masks" / "000.png")
+    write_mask(root / "eval" / "mask_before" / "000.png", mb)
+    write_mask(root / "eval" / "mask_after" / "000.png", ma)
+    write_mask(root / "eval" / "masks" / "000.png", mb | ma)
+
+    def only_after(view):  # predicts the ground truth of the after state only
+        if view.mask_after is not None:
+            return read_mask(view.mask_after)
+        return view.read_gt()
+
+    opts = E.EvalOptions(methods=["pixel_diff"], overlays=False)
+    out = tmp_path / "out"
+    df = E.evaluate_scene(root, None, out, "s", {"pixel_diff": only_after}, opts)
+    v = df.set_index("view")
+    assert (v.loc["000", "obj_N"], v.loc["000", "obj_found"]) == (2, 1)
+    assert (v.loc["001", "obj_N"], v.loc["001", "obj_found"]) == (1, 1)
+    summ = pd.read_csv(out / "scene_summary.csv").iloc[0]
+    assert summ["obj_R_pooled"] == pytest.approx(3 / 4)
+    back = pd.read_csv(out / "metrics.csv")
+    assert back["obj_N"].tolist() == [2, 1, 1]
+    # an object mask of another size than the change mask is named
+    write_mask(root / "eval" / "mask_after" / "000.png", np.zeros((H // 2, W // 2), bool))
+    with pytest.raises(SceneError, match="mask_after/000.png"):
+        E.evaluate_scene(root, None, tmp_path / "o2", "s", {"pixel_diff": only_after}, opts)

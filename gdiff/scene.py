@@ -9,6 +9,8 @@ A scene folder holds::
                                 (255 = changed), matched by file stem; every view needs its mask
                                 and at least one of its before/after images (a missing one is
                                 rendered from the model at evaluation)
+    eval/boxes.json             optional box ground truth (see gdiff.evaluate), also for
+                                training images: a scene may have it as its only eval/ file
     cameras.json | transforms.json
                                 optional known poses (else COLMAP registers the images)
 
@@ -241,9 +243,10 @@ def validate_scene(scene_dir: str | Path) -> dict:
     if ev.is_dir():
         parts = {k: {p.stem: p for p in list_images(ev / k)} for k in ("before", "after", "masks")}
         stems = set(parts["before"]) | set(parts["after"])
-        if not stems:
+        if not stems and not (ev / "boxes.json").is_file():
             raise SceneError(f"{ev}: folder exists but eval/before/ and eval/after/ hold no "
-                             "images; remove eval/ or add the evaluation pairs")
+                             "images (and there is no eval/boxes.json); remove eval/ or add the "
+                             "evaluation pairs")
         for stem in sorted(stems):
             if stem not in parts["masks"]:
                 have = [k for k in ("before", "after") if stem in parts[k]]

@@ -19,9 +19,9 @@ Per scene (the same value on each of its rows):
   so ``wall_s`` is the scene's whole-workflow wall time when it runs alone), ``peak_mb`` the
   largest rule peak;
 * ``disk_mb``: size of the files under ``<scene>/`` (MB = 10^6 bytes);
-* ``psnr_t0``, ``psnr_t1``: the fit's PSNR (dB) from ``fit/quality.csv`` per time: over its
-  eval views when it has rows of set ``eval_before``/``eval_after``, else over the training
-  views (``psnr_views`` says which: ``eval`` or ``train``).
+* ``psnr_t0``, ``psnr_t1``: the fit's PSNR (dB) per time, mean over the eval views from
+  ``eval/fit_quality.csv`` (the evaluate rule renders the fitted model there), else over the
+  training views from ``fit/quality.csv`` (``psnr_views`` says which: ``eval`` or ``train``).
 
 Synthetic scenes run at several seeds (``<preset>_s<seed>``) get extra rows ``<preset> (mean of
 N)``: every number averaged over the seeds.
@@ -70,18 +70,21 @@ def disk_mb(folder: str | Path) -> float:
     return total / 1e6
 
 
-def fit_psnr(quality_csv: str | Path) -> dict:
-    """``{"psnr_t0", "psnr_t1", "psnr_views"}`` from a ``fit/quality.csv`` (module docstring);
-    NaN and ``""`` when the file is missing."""
+def fit_psnr(scene_results: str | Path) -> dict:
+    """``{"psnr_t0", "psnr_t1", "psnr_views"}`` of ``results/<scene>/`` from
+    ``eval/fit_quality.csv``, else ``fit/quality.csv`` (module docstring); NaN and ``""`` when
+    neither has rows."""
     out = {"psnr_t0": math.nan, "psnr_t1": math.nan, "psnr_views": ""}
-    p = Path(quality_csv)
-    if not p.is_file():
+    root = Path(scene_results)
+    q = None
+    for rel, kind in (("eval/fit_quality.csv", "eval"), ("fit/quality.csv", "train")):
+        if (root / rel).is_file():
+            q = pd.read_csv(root / rel)
+            if len(q) and {"time", "psnr"} <= set(q.columns):
+                out["psnr_views"] = kind
+                break
+    if not out["psnr_views"]:
         return out
-    q = pd.read_csv(p)
-    if q.empty or not {"set", "time", "psnr"} <= set(q.columns):
-        return out
-    ev = q["set"].astype(str).str.startswith("eval")
-    q, out["psnr_views"] = (q[ev], "eval") if ev.any() else (q, "train")
     for t in (0, 1):
         v = pd.to_numeric(q.loc[np.isclose(q["time"].astype(float), t), "psnr"], errors="coerce")
         out[f"psnr_t{t}"] = float(v.mean()) if v.notna().any() else math.nan
@@ -234,6 +237,6 @@ def read_results(results: str | Path, scenes: Iterable[str] | None = None,
         if len(metrics):
             summary = summarize_metrics(metrics, boxes)
     info = {s: {"disk_mb": disk_mb(results / s) if (results / s).is_dir() else math.nan,
-                **fit_psnr(results / s / "fit" / "quality.csv")} for s in scenes}
+                **fit_psnr(results / s)} for s in scenes}
     timings = scene_timings(results, scenes)
     return build_table(summary, timings, info, synth_groups(scenes, presets))

@@ -39,6 +39,8 @@ Outputs in ``out_dir`` (``results/<scene>/eval/``), all written atomically:
   ``gtbox_N, gtbox_found, gtbox_R, far_FP, far_N, far_frac`` (box ground truth; empty for views
   without boxes; pixel and object columns empty for box views);
 * ``boxes.csv`` — every predicted and ground-truth box (for AP pooled over views);
+* ``fit_quality.csv`` — PSNR of the fitted model at each eval view, t=0 vs ``eval/before`` and
+  t=1 vs ``eval/after`` (:func:`render_quality`; written by :func:`evaluate_workflow_scene`);
 * ``scene_summary.csv`` — per method: mean over views and pooled figures (``obj_R_pooled``:
   objects found over objects, all views);
 * ``maps/<method>/NAME.png`` — each method's binary change map;
@@ -422,9 +424,36 @@ def evaluate_workflow_scene(scene_dir: str | Path, cameras_json: str | Path,
 
     pmodel = load_partition_model(partition_model, device)
     seg = from_config(SegmentOptions, segment_options, "segment")
-    methods = build_methods(options, pmodel=pmodel, render=model_renderer(pmodel.fit),
+    render = model_renderer(pmodel.fit)
+    methods = build_methods(options, pmodel=pmodel, render=render,
                             depth=model_depth(pmodel.fit), segment_options=seg)
-    return evaluate_scene(scene_dir, cameras_json, out_dir, scene_name, methods, options)
+    df = evaluate_scene(scene_dir, cameras_json, out_dir, scene_name, methods, options)
+    q = render_quality(find_eval_views(scene_dir, cameras_json), render)
+    write_csv(Path(out_dir) / "fit_quality.csv", q)
+    for t, g in q.groupby("time"):
+        log.info("%s: fitted model at the eval views, t=%g: PSNR %.2f dB (mean of %d)",
+                 scene_name, t, g["psnr"].mean(), len(g))
+    return df
+
+
+def render_quality(views: list[EvalView], render: Callable[[Camera, float], np.ndarray]
+                   ) -> pd.DataFrame:
+    """PSNR (dB, sRGB-encoded values in [0, 1]) of the fitted model rendered at every eval view
+    with a camera, at t=0 against ``eval/before`` and at t=1 against ``eval/after`` (at the
+    ground-truth mask's size): the fit's quality at novel views. Columns ``view, time, psnr``;
+    written by the evaluate rule as ``eval/fit_quality.csv``."""
+    rows = []
+    for v in views:
+        if v.mask is None or v.camera is None:
+            continue
+        cam = v.camera_at_gt_size()
+        for t, path in ((0, v.before), (1, v.after)):
+            if path is None:
+                continue
+            mse = float(np.mean((render(cam, float(t)) - v.read_image(t)) ** 2))
+            rows.append({"view": v.name, "time": t,
+                         "psnr": -10.0 * math.log10(max(mse, 1e-12))})
+    return pd.DataFrame(rows, columns=["view", "time", "psnr"])
 
 
 # ---------------------------------------------------------------------------------- scoring

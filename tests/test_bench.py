@@ -11,7 +11,7 @@ from gdiff.io import write_csv
 BENCH_HEADER = "s\th:m:s\tmax_rss\tmax_vms\tmax_uss\tmax_pss\tio_in\tio_out\tmean_load\tcpu_time\n"
 
 
-def _scene(results, name, tps, rules, psnr=(20.0, 22.0), quality_set="before"):
+def _scene(results, name, tps, rules, psnr=(20.0, 22.0)):
     """results/<name>/: eval/metrics.csv (one view per (TP, FN) of method m; FP 0; objects:
     found when TP >= FN), benchmarks/<rule>.tsv (wall, rss, cpu), fit/quality.csv."""
     rows = [{"scene": name, "view": f"{i:03d}", "method": "m", "TP": tp, "FP": 0, "FN": fn,
@@ -22,9 +22,8 @@ def _scene(results, name, tps, rules, psnr=(20.0, 22.0), quality_set="before"):
         p.parent.mkdir(parents=True, exist_ok=True)
         p.write_text(BENCH_HEADER + f"{wall}\t0:00:01\t{rss}\t1\t1\t1\t0\t0\t0\t{cpu}\n")
     write_csv(results / name / "fit" / "quality.csv", pd.DataFrame(
-        [{"image": "a.png", "set": quality_set, "time": 0.0, "psnr": psnr[0], "ssim": 0.9},
-         {"image": "b.png", "set": quality_set.replace("before", "after"), "time": 1.0,
-          "psnr": psnr[1], "ssim": 0.9}]))
+        [{"image": "a.png", "set": "before", "time": 0.0, "psnr": psnr[0], "ssim": 0.9},
+         {"image": "b.png", "set": "after", "time": 1.0, "psnr": psnr[1], "ssim": 0.9}]))
 
 
 def test_bench_table_pooled_costs_and_seed_means(tmp_path):
@@ -33,9 +32,9 @@ def test_bench_table_pooled_costs_and_seed_means(tmp_path):
     _scene(res, "demo_s0", [(30, 10), (10, 30)], {"fit": (100, 900, 180), "poses": (10, 300, 8)})
     _scene(res, "demo_s1", [(20, 20)], {"fit": (300, 1100, 500), "poses": (30, 500, 12)},
            psnr=(24.0, 26.0))
-    _scene(res, "desk_s1", [(5, 5)], {"fit": (50, 700, 90)}, quality_set="eval_before")
-    (res / "desk_s1" / "fit" / "quality.csv").write_text(
-        "image,set,time,psnr,ssim\nx,before,0,40,1\ny,eval_before,0,18,1\nz,eval_after,1,19,1\n")
+    _scene(res, "desk_s1", [(5, 5)], {"fit": (50, 700, 90)})
+    (res / "desk_s1" / "eval" / "fit_quality.csv").write_text(
+        "view,time,psnr\n000,0,17\n001,0,19\n000,1,19\n")
     (res / "plots").mkdir()  # not a scene
     assert Bn.scene_folders(res) == ["demo_s0", "demo_s1", "desk_s1"]
     t = Bn.read_results(res, presets=["demo"]).set_index("scene")
@@ -47,7 +46,7 @@ def test_bench_table_pooled_costs_and_seed_means(tmp_path):
     assert (s0["wall_s"], s0["cpu_s"], s0["peak_mb"]) == (110, 188, 900)
     assert (s0["psnr_t0"], s0["psnr_t1"], s0["psnr_views"]) == (20.0, 22.0, "train")
     assert s0["disk_mb"] > 0
-    # the real scene's PSNR is over its eval views; it has no poses timing
+    # the real scene's PSNR is over its eval views (evaluate's fit_quality.csv); no poses timing
     d = t.loc["desk_s1"]
     assert (d["psnr_t0"], d["psnr_t1"], d["psnr_views"]) == (18.0, 19.0, "eval")
     assert math.isnan(d["wall_poses"]) and d["wall_s"] == 50

@@ -299,3 +299,20 @@ def test_box_only_scene_validates(tmp_path):
     views = E.find_eval_views(root)
     assert [v.name for v in views] == ["after/000"] and views[0].mask is None
     assert views[0].box_size == (W, H) and views[0].shape() == (H, W)
+
+
+def test_render_quality_psnr_at_eval_views(tmp_path):
+    root, boxes = _scene(tmp_path, post_only=("002",))
+    views = E.find_eval_views(root, root / "cameras.json")
+    seen = []
+
+    def render(camera, t):  # the true image at t=1, the true image + 0.1 at t=0
+        seen.append((camera.width, camera.height, t))
+        v = views[round(camera.center[0])]
+        return v.read_image(1) if t == 1.0 else np.clip(v.read_image(0) + 0.1, 0, 1)
+
+    q = E.render_quality(views, render)
+    assert len(q) == 5 and set(seen) >= {(W, H, 0.0), (W, H, 1.0)}  # 002 has no before image
+    assert (q[q["time"] == 1]["psnr"] > 90).all()
+    t0 = q[q["time"] == 0]["psnr"]
+    assert t0.between(19.0, 20.01).all()  # +0.1 everywhere (a little less where clipped)

@@ -1,17 +1,6 @@
 # Built-in synthetic scenes (scenes: synth:<preset> or synth:<preset>:<seed>), generated into
-# resources/synth/<preset> (seed: config synth_seed) or resources/synth/<preset>_s<seed>.
-
-SYNTH = {
-    s.path.name: (s.synth_preset, s.synth_seed)
-    for s in SCENES.values()
-    if s.synth_preset is not None
-}
-
-
-def synth_params(wildcards):
-    preset, seed = SYNTH[wildcards.synth]
-    return {"preset": preset, "seed": config["synth_seed"] if seed is None else seed}
-
+# resources/synth/<preset> (seed: config synth_seed) or resources/synth/<preset>_s<seed>
+# (SYNTH and synth_params in common.smk).
 
 rule synth:
     wildcard_constraints:

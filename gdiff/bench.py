@@ -95,7 +95,8 @@ def scene_timings(results: str | Path, scenes: Iterable[str]) -> pd.DataFrame:
     """``scene, rule, seconds, cpu_seconds, max_rss_mb`` per scene and rule: from the
     benchmark TSVs, else from ``results/timings.csv`` (module docstring)."""
     results = Path(results)
-    tsvs = {(s, p.stem): p for s in scenes for p in sorted((results / s / "benchmarks").glob("*.tsv"))}
+    tsvs = {(s, p.stem): p for s in scenes
+            for p in sorted((results / s / "benchmarks").glob("*.tsv"))}
     t = collect_timings(tsvs)
     have = set(t["scene"])
     missing = [s for s in scenes if s not in have]

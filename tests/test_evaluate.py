@@ -255,7 +255,8 @@ def test_box_ground_truth_on_eval_views_and_training_images(tmp_path):
             m[3:9, 3:11] = True
             m[0:4, 28:32] = True
             return {"mask": m}
-        return {"mask": read_mask(root / "eval" / "masks" / f"{pmodel[round(camera.center[0])]}.png")}
+        name = pmodel[round(camera.center[0])]
+        return {"mask": read_mask(root / "eval" / "masks" / f"{name}.png")}
 
     methods = {"pixel_diff": B.pixel_diff_method(blur_sigma=1.0),
                "partition": B.partition_method(dict(enumerate(sorted(boxes))),

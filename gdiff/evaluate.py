@@ -7,6 +7,7 @@ Eval views of a scene folder (matched by file stem)::
     eval/after/NAME.*            image after the change, same viewpoint     } usually both
     eval/mask_before/NAME.png    optional: the part of the mask from objects present before
     eval/mask_after/NAME.png     optional: the part from objects present after
+    eval/boxes.json              optional box ground truth (below)
 
 The ground truth marks every pixel where a changed object is visible in the before *or* the after
 state (see docs/datasets.md for how each public dataset maps onto this). Datasets that give only
@@ -14,13 +15,34 @@ post-change eval images produce views without ``eval/before``; methods that need
 then use a renderer of the fitted model at ``t = 0`` when the workflow passes one, or skip the
 view (logged).
 
+Box ground truth (``eval/boxes.json``; many real datasets give boxes, not masks): per view a
+list of boxes ``[x0, y0, x1, y1]`` in pixels of that view's image, either as
+``{"NAME": [[x0, y0, x1, y1], ...], ...}`` or in the layout
+``{"views": {"NAME": {"boxes_xyxy_px": [[...], ...]}, ...}}`` (extra keys ignored). ``NAME``
+is an eval view (its stem, with or without extension) or a training image: a path in the scene
+folder (``after/v00.png``) or a bare file name, taken from ``after/`` when it is there, else
+from ``before/``. Eval views with boxes get box scores beside their mask scores; a training
+image with boxes becomes a *box view* (named by its path without extension, e.g. ``after/v00``)
+where only ``partition`` is scored, its change map rendered at that image's camera from
+``poses/cameras.json`` (the other methods need an eval photo pair and are skipped, logged).
+Box scores (:func:`gdiff.metrics.gt_box_scores`): a box is found when at least
+``object_found_fraction`` of its core (the centred ``box_core`` of its width and height) is
+predicted changed, and ``far_frac`` is the share of the image predicted changed farther than
+``box_margin`` pixels from every box.
+
 Outputs in ``out_dir`` (``results/<scene>/eval/``), all written atomically:
 
 * ``metrics.csv`` — one row per (view, method): ``scene, view, method, P, R, F1, IoU, TP, FP,
-  FN, box_P, box_R, box_F1, box_AP, box_TP, box_FP, box_FN, seconds`` (see
-  :mod:`gdiff.metrics` for definitions and the NaN convention);
+  FN, box_P, box_R, box_F1, box_AP, box_TP, box_FP, box_FN, seconds, obj_N, obj_found, obj_R``
+  (objects: connected regions of ``mask_before``/``mask_after``, else of ``masks``, of at least
+  ``box_min_area``; see :mod:`gdiff.metrics` for definitions and the NaN convention), then
+  ``gtbox_N, gtbox_found, gtbox_R, far_FP, far_N, far_frac`` (box ground truth; empty for views
+  without boxes; pixel and object columns empty for box views);
 * ``boxes.csv`` — every predicted and ground-truth box (for AP pooled over views);
-* ``scene_summary.csv`` — per method: mean over views and pooled figures;
+* ``fit_quality.csv`` — PSNR of the fitted model at each eval view, t=0 vs ``eval/before`` and
+  t=1 vs ``eval/after`` (:func:`render_quality`; written by :func:`evaluate_workflow_scene`);
+* ``scene_summary.csv`` — per method: mean over views and pooled figures (``obj_R_pooled``:
+  objects found over objects, all views);
 * ``maps/<method>/NAME.png`` — each method's binary change map;
 * ``overlays/NAME.png`` — one row per method: image | prediction | ground truth | TP (green),
   FP (red), FN (blue), with the view's F1/IoU written on it.
@@ -43,16 +65,18 @@ from .baselines import (MethodNotApplicable, Prediction, as_prediction, idcompar
                         partition_method, pixel_diff_method)
 from .cameras import Camera, load_cameras
 from .errors import ConfigError, SceneError
-from .io import read_image, read_mask, write_csv, write_image, write_mask
+from .io import read_image, read_json, read_mask, write_csv, write_image, write_mask
 from .scene import list_images
 from .log import progress
-from .metrics import aggregate, score_view
+from .metrics import aggregate, gt_box_scores, object_regions, object_scores, score_view
 
 log = logging.getLogger("gdiff.evaluate")
 
 METHODS = ("pixel_diff", "idcompare", "partition")
 METRIC_COLUMNS = ["scene", "view", "method", "P", "R", "F1", "IoU", "TP", "FP", "FN",
-                  "box_P", "box_R", "box_F1", "box_AP", "box_TP", "box_FP", "box_FN", "seconds"]
+                  "box_P", "box_R", "box_F1", "box_AP", "box_TP", "box_FP", "box_FN", "seconds",
+                  "obj_N", "obj_found", "obj_R", "gtbox_N", "gtbox_found", "gtbox_R", "far_FP",
+                  "far_N", "far_frac"]
 
 
 @dataclass
@@ -73,6 +97,16 @@ class EvalOptions:
     """idcompare: give the eval pair the fitted model's depth at the eval camera at t=0 and t=1
     (photos have no depth). Off by default: on the path-traced bench scenes the fitted depth at
     novel eval views added false evidence (pooled F1 0.885 -> 0.565 and 0.288 -> 0.202)."""
+    object_found_fraction: float = 0.5
+    """Object recall: an object (a connected region of eval/mask_before or eval/mask_after, else
+    of eval/masks) counts as found in a view when at least this fraction of its pixels is
+    predicted changed."""
+    box_core: float = 0.5
+    """Box ground truth: the centred part of a box (this fraction of its width and height) that
+    must be mostly (``object_found_fraction``) predicted changed for the box to count as found."""
+    box_margin: float = 25.0
+    """Box ground truth: predicted change farther than this many pixels (of the view's image)
+    from every box counts as flagged far from any annotated change."""
     overlays: bool = True
     """Write overlays/NAME.png (image | prediction | GT | TP/FP/FN per method)."""
     overlay_max_side: int = 400
@@ -86,6 +120,12 @@ class EvalOptions:
             raise ValueError("box_iou must lie in (0, 1]")
         if not 0.0 <= self.box_min_area < 1.0:
             raise ValueError("box_min_area is a fraction of the image and must lie in [0, 1)")
+        if not 0.0 < self.object_found_fraction <= 1.0:
+            raise ValueError("object_found_fraction must lie in (0, 1]")
+        if not 0.0 < self.box_core <= 1.0:
+            raise ValueError("box_core must lie in (0, 1]")
+        if self.box_margin < 0:
+            raise ValueError("box_margin is in pixels and must be >= 0")
 
 
 # ------------------------------------------------------------------------------------ views
@@ -97,19 +137,59 @@ class EvalView:
     the eval camera (OpenCV c2w, intrinsics of the eval images) when ``cameras.json`` has it."""
 
     name: str
-    mask: Path
+    mask: Path | None
     before: Path | None = None
     after: Path | None = None
     camera: Camera | None = None
     mask_before: Path | None = None
     mask_after: Path | None = None
+    boxes: np.ndarray | None = None
+    """Ground-truth boxes float [K, 4] ``x0, y0, x1, y1`` in pixels of ``box_size``, or None."""
+    box_size: tuple[int, int] | None = None
+    """``(width, height)`` of the image the boxes are given in."""
+    image: Path | None = None
+    """Box views (no mask): the training image the boxes belong to."""
     _gt: np.ndarray | None = field(default=None, repr=False)
 
     def read_gt(self) -> np.ndarray:
         """Ground-truth change mask, bool [H, W]."""
+        if self.mask is None:
+            raise MethodNotApplicable(f"view {self.name} has boxes only, no change mask")
         if self._gt is None:
             self._gt = read_mask(self.mask)
         return self._gt
+
+    def shape(self) -> tuple[int, int]:
+        """``(H, W)`` the view is scored at: the mask's, else the image's."""
+        if self.mask is not None:
+            return self.read_gt().shape
+        w, h = self.box_size
+        return h, w
+
+    def boxes_at_scored_size(self) -> np.ndarray | None:
+        """The ground-truth boxes scaled to :meth:`shape`, float [K, 4], or None."""
+        if self.boxes is None:
+            return None
+        h, w = self.shape()
+        bw, bh = self.box_size
+        return self.boxes * np.array([w / bw, h / bh, w / bw, h / bh])
+
+    def object_masks(self) -> list[np.ndarray]:
+        """The masks whose connected regions are this view's objects, bool [H, W] each:
+        ``mask_before`` and ``mask_after`` where the scene has them (a moved object is then one
+        object at each place), else the change mask itself."""
+        parts = [p for p in (self.mask_before, self.mask_after) if p is not None]
+        if not parts:
+            return [self.read_gt()]
+        h, w = self.read_gt().shape
+        out = []
+        for p in parts:
+            m = read_mask(p)
+            if m.shape != (h, w):
+                raise SceneError(f"{p}: size {m.shape[1]}x{m.shape[0]} differs from the change "
+                                 f"mask {self.mask} ({w}x{h}); object masks must match it")
+            out.append(m)
+        return out
 
     def read_image(self, t: int) -> np.ndarray:
         """Eval image at time ``t`` (0 before, 1 after), float32 [H, W, 3] in [0, 1], resized
@@ -125,14 +205,19 @@ class EvalView:
         return img
 
     def display_image(self) -> np.ndarray:
-        """The after image (else the before image) for overlays, [H, W, 3]."""
+        """The after image (else the before image; a box view's image) for overlays,
+        [H, W, 3]."""
+        if self.mask is None:
+            img = read_image(self.image)
+            h, w = self.shape()
+            return img if img.shape[:2] == (h, w) else cv2.resize(img, (w, h))
         return self.read_image(1 if self.after is not None else 0)
 
     def camera_at_gt_size(self) -> Camera:
-        """The eval camera scaled to the ground-truth mask's size."""
+        """The eval camera scaled to the ground-truth mask's size (a box view's: its image's)."""
         if self.camera is None:
             raise MethodNotApplicable(f"view {self.name} has no eval camera")
-        h, w = self.read_gt().shape
+        h, w = self.shape()
         cam = self.camera
         if (cam.width, cam.height) != (w, h):
             cam = cam.scaled(w / cam.width)
@@ -162,18 +247,22 @@ def find_eval_views(scene_dir: str | Path, cameras_json: str | Path | None = Non
     ev = root / "eval"
     masks = _by_stem(ev / "masks")
     before, after = _by_stem(ev / "before"), _by_stem(ev / "after")
-    if not masks:
+    box_gt = read_boxes(ev / "boxes.json") if (ev / "boxes.json").is_file() else None
+    if not masks and box_gt is None:
         raise SceneError(f"{ev}/masks: no ground-truth masks; the evaluate stage needs "
-                         "eval/masks/NAME.png with eval/before/NAME.* and/or eval/after/NAME.*")
+                         "eval/masks/NAME.png with eval/before/NAME.* and/or eval/after/NAME.*, "
+                         "or box ground truth in eval/boxes.json")
     orphans = sorted((set(before) | set(after)) - set(masks))
     if orphans:
         raise SceneError(f"{ev}: eval image(s) {', '.join(orphans[:5])} have no mask in "
                          "eval/masks/ (same file stem); add the masks or remove the images")
-    cams: dict[str, Camera] = {}
+    cams: dict = {}
     if cameras_json is not None:
         for c in load_cameras(cameras_json):
             if c.set in ("eval_before", "eval_after") and c.image:
                 cams[(c.set, Path(c.image).stem)] = c
+            elif c.image:
+                cams[("train", Path(c.image).as_posix())] = c
     mb, ma = _by_stem(ev / "mask_before"), _by_stem(ev / "mask_after")
     views = []
     for stem, mpath in sorted(masks.items()):
@@ -184,12 +273,79 @@ def find_eval_views(scene_dir: str | Path, cameras_json: str | Path | None = Non
         cam = cams.get(("eval_after", stem)) if a is not None else None
         cam = cam or (cams.get(("eval_before", stem)) if b is not None else None)
         views.append(EvalView(stem, mpath, b, a, cam, mb.get(stem), ma.get(stem)))
+    if box_gt is not None:
+        views += _attach_boxes(root, views, box_gt, cams, cameras_json is not None)
     if cameras_json is not None:
         missing = [v.name for v in views if v.camera is None]
         if missing:
             log.warning("%s: no eval camera for view(s) %s; the partition method skips them",
                         cameras_json, ", ".join(missing[:10]))
     return views
+
+
+def read_boxes(path: str | Path) -> dict[str, np.ndarray]:
+    """``eval/boxes.json`` (either layout of the module docstring) -> ``{NAME: float [K, 4]}``.
+    Raises :class:`SceneError` naming the file and the entry when a box is malformed."""
+    path = Path(path)
+    data = read_json(path)
+    if isinstance(data, dict) and isinstance(data.get("views"), dict):
+        data = data["views"]
+    if not isinstance(data, dict):
+        raise SceneError(f"{path}: expected an object {{NAME: [[x0, y0, x1, y1], ...]}} or "
+                         "{\"views\": {NAME: {\"boxes_xyxy_px\": [...]}}}")
+    out = {}
+    for name, entry in data.items():
+        if isinstance(entry, dict):
+            entry = entry.get("boxes_xyxy_px", entry.get("boxes"))
+        try:
+            b = np.asarray(entry, dtype=np.float64).reshape(-1, 4)
+            ok = bool(np.isfinite(b).all() and (b[:, 2] > b[:, 0]).all()
+                      and (b[:, 3] > b[:, 1]).all())
+        except (TypeError, ValueError):
+            ok = False
+        if not ok:
+            raise SceneError(f"{path}: entry {name!r} is not a list of boxes [x0, y0, x1, y1] "
+                             "(pixels, x1 > x0, y1 > y0)")
+        out[str(name)] = b
+    return out
+
+
+def _image_size(path: Path) -> tuple[int, int]:
+    img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    if img is None:
+        raise SceneError(f"{path}: cannot be read as an image")
+    return int(img.shape[1]), int(img.shape[0])
+
+
+def _attach_boxes(root: Path, views: list[EvalView], box_gt: dict[str, np.ndarray],
+                  cams: dict, have_cameras: bool) -> list[EvalView]:
+    """Give eval views their boxes; return the box views of training images (module
+    docstring)."""
+    by_name = {v.name: v for v in views}
+    extra = []
+    for key, boxes in sorted(box_gt.items()):
+        stem = Path(key).stem
+        if "/" not in key and stem in by_name:
+            v = by_name[stem]
+            v.boxes = boxes
+            img = v.after or v.before
+            v.box_size = _image_size(img)
+            continue
+        if "/" in key:
+            rel = Path(key)
+        else:
+            rel = next((Path(d) / key for d in ("after", "before") if (root / d / key).is_file()),
+                       Path("after") / key)
+        if not (root / rel).is_file():
+            raise SceneError(f"{root / 'eval' / 'boxes.json'}: entry {key!r} is neither an eval "
+                             f"view nor an image of the scene ({root / rel} does not exist)")
+        cam = cams.get(("train", rel.as_posix()))
+        if cam is None and have_cameras:
+            log.warning("%s: no camera for %s in cameras.json; its boxes are not scored",
+                        root / "eval" / "boxes.json", rel)
+        extra.append(EvalView(rel.with_suffix("").as_posix(), None, camera=cam, boxes=boxes,
+                              box_size=_image_size(root / rel), image=root / rel))
+    return extra
 
 
 # ---------------------------------------------------------------------------------- methods
@@ -268,9 +424,36 @@ def evaluate_workflow_scene(scene_dir: str | Path, cameras_json: str | Path,
 
     pmodel = load_partition_model(partition_model, device)
     seg = from_config(SegmentOptions, segment_options, "segment")
-    methods = build_methods(options, pmodel=pmodel, render=model_renderer(pmodel.fit),
+    render = model_renderer(pmodel.fit)
+    methods = build_methods(options, pmodel=pmodel, render=render,
                             depth=model_depth(pmodel.fit), segment_options=seg)
-    return evaluate_scene(scene_dir, cameras_json, out_dir, scene_name, methods, options)
+    df = evaluate_scene(scene_dir, cameras_json, out_dir, scene_name, methods, options)
+    q = render_quality(find_eval_views(scene_dir, cameras_json), render)
+    write_csv(Path(out_dir) / "fit_quality.csv", q)
+    for t, g in q.groupby("time"):
+        log.info("%s: fitted model at the eval views, t=%g: PSNR %.2f dB (mean of %d)",
+                 scene_name, t, g["psnr"].mean(), len(g))
+    return df
+
+
+def render_quality(views: list[EvalView], render: Callable[[Camera, float], np.ndarray]
+                   ) -> pd.DataFrame:
+    """PSNR (dB, sRGB-encoded values in [0, 1]) of the fitted model rendered at every eval view
+    with a camera, at t=0 against ``eval/before`` and at t=1 against ``eval/after`` (at the
+    ground-truth mask's size): the fit's quality at novel views. Columns ``view, time, psnr``;
+    written by the evaluate rule as ``eval/fit_quality.csv``."""
+    rows = []
+    for v in views:
+        if v.mask is None or v.camera is None:
+            continue
+        cam = v.camera_at_gt_size()
+        for t, path in ((0, v.before), (1, v.after)):
+            if path is None:
+                continue
+            mse = float(np.mean((render(cam, float(t)) - v.read_image(t)) ** 2))
+            rows.append({"view": v.name, "time": t,
+                         "psnr": -10.0 * math.log10(max(mse, 1e-12))})
+    return pd.DataFrame(rows, columns=["view", "time", "psnr"])
 
 
 # ---------------------------------------------------------------------------------- scoring
@@ -289,11 +472,18 @@ def evaluate_scene(scene_dir: str | Path, cameras_json: str | Path | None, out_d
     views = find_eval_views(scene_dir, cameras_json)
     rows, box_frames = [], []
     for view in progress(views, desc=f"evaluate {scene_name}"):
-        gt = view.read_gt()
-        h, w = gt.shape
+        gt = view.read_gt() if view.mask is not None else None
+        h, w = view.shape()
         min_area = int(math.ceil(options.box_min_area * h * w))
+        objects = object_regions(view.object_masks(), min_area) if gt is not None else []
+        gt_boxes = view.boxes_at_scored_size()
+        margin = options.box_margin * (w / view.box_size[0] if view.box_size else 1.0)
         preds: dict[str, Prediction] = {}
         for name, fn in methods.items():
+            if gt is None and name != "partition":
+                log.info("%s: %s skipped at %s (box ground truth on a training image: the method "
+                         "needs an eval photo pair)", scene_name, name, view.name)
+                continue
             t0 = time.perf_counter()
             try:
                 pred = as_prediction(fn(view))
@@ -302,15 +492,23 @@ def evaluate_scene(scene_dir: str | Path, cameras_json: str | Path | None, out_d
                 continue
             seconds = time.perf_counter() - t0
             pred = _fit_to(pred, (h, w), f"{name} at view {view.name}")
-            scores, boxes = score_view(pred.mask, gt, pred.prob, options.box_iou, min_area)
+            scores = {}
+            if gt is not None:
+                scores, boxes = score_view(pred.mask, gt, pred.prob, options.box_iou, min_area)
+                scores.update(object_scores(pred.mask, objects, options.object_found_fraction))
+                box_frames.append(boxes.assign(scene=scene_name, view=view.name, method=name))
+            if gt_boxes is not None:
+                scores.update(gt_box_scores(pred.mask, gt_boxes, options.box_core,
+                                            options.object_found_fraction, margin))
             rows.append({"scene": scene_name, "view": view.name, "method": name, **scores,
                          "seconds": seconds})
-            box_frames.append(boxes.assign(scene=scene_name, view=view.name, method=name))
             write_mask(out_dir / "maps" / name / f"{view.name}.png", pred.mask)
             preds[name] = pred
         if options.overlays and preds:
+            truth = gt if gt is not None else _box_mask(gt_boxes, (h, w))
             write_image(out_dir / "overlays" / f"{view.name}.png",
-                        overlay_panel(view.display_image(), preds, gt, options.overlay_max_side,
+                        overlay_panel(view.display_image(), preds, truth,
+                                      options.overlay_max_side,
                                       [r for r in rows if r["view"] == view.name]))
     df = pd.DataFrame(rows, columns=METRIC_COLUMNS)
     box_cols = ["scene", "view", "method", "kind", "x0", "y0", "x1", "y1", "score", "matched",
@@ -325,7 +523,21 @@ def evaluate_scene(scene_dir: str | Path, cameras_json: str | Path | None, out_d
     for m, g in df.groupby("method"):
         log.info("%s %s: F1 %.3f IoU %.3f (mean of %d views)", scene_name, m,
                  g["F1"].mean(), g["IoU"].mean(), len(g))
+        if g["gtbox_N"].notna().any():
+            log.info("%s %s: %d of %d boxes found, %.3f of the image flagged far from any box",
+                     scene_name, m, int(g["gtbox_found"].sum()), int(g["gtbox_N"].sum()),
+                     g["far_FP"].sum() / max(g["far_N"].sum(), 1))
     return df
+
+
+def _box_mask(boxes: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
+    """Filled boxes as a bool [H, W] mask (the 'ground truth' panel of a box view's overlay)."""
+    m = np.zeros(shape, bool)
+    h, w = shape
+    for x0, y0, x1, y1 in np.asarray(boxes).reshape(-1, 4):
+        m[max(0, int(round(y0))):min(h, int(round(y1))),
+          max(0, int(round(x0))):min(w, int(round(x1)))] = True
+    return m
 
 
 def _fit_to(pred: Prediction, shape: tuple[int, int], what: str) -> Prediction:

@@ -27,6 +27,20 @@ Conventions
   of the probability map over its region's pixels when a probability map is given, else the
   region's area in pixels. AP is the area under the precision-recall curve with the precision
   made monotone (all-point interpolation, VOC 2010+); NaN when there is no ground-truth box.
+* Objects: every 8-connected region (of at least ``min_area`` pixels) of a view's ground-truth
+  object masks is one *object view* (an object seen in that view; the before and after masks are
+  split separately, so a moved object counts once at each place). It is *found* when at least
+  ``found_fraction`` (0.5) of its pixels are predicted changed. Per view ``obj_N`` objects,
+  ``obj_found`` found, ``obj_R = obj_found / obj_N`` (NaN without objects); the pooled object
+  recall is the summed ``obj_found`` over the summed ``obj_N``.
+* Ground-truth boxes (datasets that give boxes, not masks; ``x0, y0, x1, y1`` in pixels of the
+  scored map, end exclusive, fractional values allowed): a box is *found* when at least
+  ``found_fraction`` of its *core* (the centred box of ``core`` (0.5) times its width and height)
+  is predicted changed; ``gtbox_N`` boxes, ``gtbox_found`` found, ``gtbox_R`` their ratio.
+  ``far_FP`` counts predicted pixels farther than ``margin`` pixels from every box (Chebyshev
+  distance, i.e. outside every box grown by ``margin`` on each side) and ``far_N`` the pixels
+  of the map; ``far_frac = far_FP / far_N`` is the fraction of the image predicted changed far
+  from any annotated change.
 """
 
 from __future__ import annotations
@@ -214,9 +228,82 @@ def score_view(pred: np.ndarray, gt: np.ndarray, prob: np.ndarray | None = None,
     return {**px, **bx}, boxes
 
 
+# --------------------------------------------------------------------------------- objects
+
+OBJECT_METRICS = ("obj_R",)
+GTBOX_METRICS = ("gtbox_R", "far_frac")
+
+
+def object_regions(masks, min_area: int = 0) -> list[np.ndarray]:
+    """The object views of a view: the 8-connected regions of each mask in ``masks`` (an
+    ``[H, W]`` mask or a list of them, e.g. the before and the after object masks) with at least
+    ``min_area`` pixels, as a list of bool ``[H, W]`` masks."""
+    if isinstance(masks, np.ndarray) and masks.ndim == 2:
+        masks = [masks]
+    out = []
+    for m in masks:
+        r = connected_regions(m, min_area)
+        out += [r.labels == k for k in range(1, len(r.boxes) + 1)]
+    return out
+
+
+def object_scores(pred: np.ndarray, objects: list[np.ndarray],
+                  found_fraction: float = 0.5) -> dict[str, float]:
+    """``{"obj_N", "obj_found", "obj_R"}`` of one view: how many of ``objects`` (bool [H, W]
+    masks, :func:`object_regions`) have at least ``found_fraction`` of their pixels in
+    ``pred > 0``."""
+    pred = np.asarray(pred) > 0
+    found = 0
+    for o in objects:
+        if o.shape != pred.shape:
+            raise ValueError(f"object mask shape {o.shape} != prediction shape {pred.shape}")
+        n = np.count_nonzero(o)
+        found += int(n > 0 and np.count_nonzero(pred & o) >= found_fraction * n)
+    return {"obj_N": len(objects), "obj_found": found, "obj_R": _ratio(found, len(objects))}
+
+
+def _box_slices(box, shape: tuple[int, int], scale: float = 1.0, grow: float = 0.0
+                ) -> tuple[slice, slice]:
+    """Pixel rows/cols of box ``x0, y0, x1, y1`` scaled by ``scale`` about its centre and grown
+    by ``grow`` pixels per side; pixel (i, j) is inside when its centre (i+0.5, j+0.5) is."""
+    x0, y0, x1, y1 = (float(v) for v in box)
+    cx, cy, hw, hh = (x0 + x1) / 2, (y0 + y1) / 2, (x1 - x0) / 2, (y1 - y0) / 2
+    hw, hh = hw * scale + grow, hh * scale + grow
+    h, w = shape
+
+    def rng(lo, hi, n):
+        a = int(np.clip(np.ceil(lo - 0.5), 0, n))
+        b = int(np.clip(np.ceil(hi - 0.5), 0, n))
+        return slice(a, max(a, b))
+
+    return rng(cy - hh, cy + hh, h), rng(cx - hw, cx + hw, w)
+
+
+def gt_box_scores(pred: np.ndarray, boxes, core: float = 0.5, found_fraction: float = 0.5,
+                  margin: float = 25.0) -> dict[str, float]:
+    """Scores of a change map ``pred`` [H, W] against ground-truth boxes [K, 4] (module
+    docstring): ``gtbox_N, gtbox_found, gtbox_R, far_FP, far_N, far_frac``."""
+    pred = np.asarray(pred) > 0
+    boxes = np.asarray(boxes, dtype=np.float64).reshape(-1, 4)
+    found = 0
+    near = np.zeros(pred.shape, bool)
+    for b in boxes:
+        rs, cs = _box_slices(b, pred.shape, scale=core)
+        if rs.stop == rs.start or cs.stop == cs.start:  # a core thinner than a pixel
+            rs, cs = _box_slices(b, pred.shape, scale=core, grow=0.5)
+        n = (rs.stop - rs.start) * (cs.stop - cs.start)
+        found += int(n > 0 and np.count_nonzero(pred[rs, cs]) >= found_fraction * n)
+        rs, cs = _box_slices(b, pred.shape, grow=margin)
+        near[rs, cs] = True
+    far = int(np.count_nonzero(pred & ~near))
+    return {"gtbox_N": len(boxes), "gtbox_found": found, "gtbox_R": _ratio(found, len(boxes)),
+            "far_FP": far, "far_N": int(pred.size), "far_frac": _ratio(far, pred.size)}
+
+
 # ----------------------------------------------------------------------------- aggregation
 
-COUNT_COLUMNS = ("TP", "FP", "FN", "box_TP", "box_FP", "box_FN")
+COUNT_COLUMNS = ("TP", "FP", "FN", "box_TP", "box_FP", "box_FN", "obj_N", "obj_found",
+                 "gtbox_N", "gtbox_found", "far_FP", "far_N")
 
 
 def _as_bool(col: pd.Series) -> np.ndarray:
@@ -243,14 +330,14 @@ def aggregate(metrics: pd.DataFrame, boxes: pd.DataFrame | None = None,
         key = key if isinstance(key, tuple) else (key,)
         row = dict(zip(by, key))
         row["n_views"] = int(g["view"].nunique()) if "view" in g else len(g)
-        for m in PIXEL_METRICS + BOX_METRICS:
+        for m in PIXEL_METRICS + BOX_METRICS + OBJECT_METRICS + GTBOX_METRICS:
             if m in g:
                 vals = pd.to_numeric(g[m], errors="coerce")
                 row[f"{m}_mean"] = float(vals.mean()) if vals.notna().any() else float("nan")
                 row[f"n_{m}"] = int(vals.notna().sum())
         for c in COUNT_COLUMNS:
             if c in g:
-                row[c] = int(pd.to_numeric(g[c]).sum())
+                row[c] = int(pd.to_numeric(g[c], errors="coerce").fillna(0).sum())
         if {"TP", "FP", "FN"} <= set(row):
             for k, v in scores_from_counts(row["TP"], row["FP"], row["FN"]).items():
                 row[f"{k}_pooled"] = v
@@ -258,6 +345,11 @@ def aggregate(metrics: pd.DataFrame, boxes: pd.DataFrame | None = None,
             for k, v in scores_from_counts(row["box_TP"], row["box_FP"], row["box_FN"]).items():
                 if k != "IoU":
                     row[f"box_{k}_pooled"] = v
+        for found, n, out in (("obj_found", "obj_N", "obj_R_pooled"),
+                              ("gtbox_found", "gtbox_N", "gtbox_R_pooled"),
+                              ("far_FP", "far_N", "far_frac_pooled")):
+            if n in row:
+                row[out] = _ratio(row[found], row[n])
         row["box_AP_pooled"] = float("nan")
         if boxes is not None and len(boxes):
             sel = np.ones(len(boxes), dtype=bool)

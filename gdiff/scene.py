@@ -9,13 +9,17 @@ A scene folder holds::
                                 (255 = changed), matched by file stem; every view needs its mask
                                 and at least one of its before/after images (a missing one is
                                 rendered from the model at evaluation)
+    eval/boxes.json             optional box ground truth (see gdiff.evaluate), also for
+                                training images: a scene may have it as its only eval/ file
     cameras.json | transforms.json
                                 optional known poses (else COLMAP registers the images)
 
 The ``scenes`` config key names what to run on (see :func:`discover_scenes`):
 
 * ``synth:<preset>`` — a built-in synthetic scene that the workflow generates itself
-  (default ``synth:demo``);
+  (default ``synth:demo``) with the config's ``synth_seed``, named ``<preset>``;
+  ``synth:<preset>:<seed>`` the same scene drawn with its own seed, named
+  ``<preset>_s<seed>`` (so one run can hold several seeds of a preset);
 * a scene folder (has ``before/`` and ``after/``);
 * a folder of scene folders;
 * a TSV/CSV sheet with columns ``name``, ``path`` and optional per-scene overrides: extra
@@ -51,6 +55,7 @@ class SceneSpec:
     path: Path
     overrides: dict[str, dict[str, Any]] = field(default_factory=dict)
     synth_preset: str | None = None  # set when the workflow generates the scene itself
+    synth_seed: int | None = None  # its own seed (None: the config's synth_seed)
 
     @property
     def has_eval(self) -> bool:
@@ -86,9 +91,10 @@ def discover_scenes(spec: str | Path, synth_root: str | Path = "resources/synth"
     """
     spec = str(spec).strip()
     if spec.startswith(SYNTH_PREFIX):
-        preset = spec[len(SYNTH_PREFIX):]
-        _check_name(preset, "config key 'scenes'")
-        return {preset: SceneSpec(preset, Path(synth_root) / preset, synth_preset=preset)}
+        preset, seed = parse_synth(spec, "config key 'scenes'")
+        name = synth_folder_name(preset, seed)
+        return {name: SceneSpec(name, Path(synth_root) / name, synth_preset=preset,
+                                synth_seed=seed)}
     path = Path(spec)
     if not path.is_absolute():
         path = Path(base) / path
@@ -110,6 +116,29 @@ def discover_scenes(spec: str | Path, synth_root: str | Path = "resources/synth"
         raise ConfigError(f"config key 'scenes': {path} is neither a scene folder (no before/ and "
                           "after/ inside) nor a folder of scene folders (no sub-folder has both)")
     return scenes
+
+
+def parse_synth(spec: str, where: str) -> tuple[str, int | None]:
+    """``synth:<preset>`` -> ``(preset, None)``; ``synth:<preset>:<seed>`` -> ``(preset, seed)``."""
+    body = spec.strip()[len(SYNTH_PREFIX):]
+    preset, _, seed = body.partition(":")
+    _check_name(preset, where)
+    if not _:
+        return preset, None
+    try:
+        value = int(seed)
+    except ValueError:
+        value = -1
+    if value < 0:
+        raise ConfigError(f"{where}: {spec!r}: the seed after '{SYNTH_PREFIX}{preset}:' must be a "
+                          "whole number >= 0 (e.g. synth:demo:1)")
+    return preset, value
+
+
+def synth_folder_name(preset: str, seed: int | None) -> str:
+    """Scene name and folder (under the synth root) of a synthetic scene: ``<preset>``, or
+    ``<preset>_s<seed>`` when it has its own seed."""
+    return preset if seed is None else f"{preset}_s{seed}"
 
 
 def read_scene_sheet(path: str | Path) -> dict[str, SceneSpec]:
@@ -147,9 +176,10 @@ def read_scene_sheet(path: str | Path) -> dict[str, SceneSpec]:
         _check_name(name, where)
         if name in scenes:
             raise ConfigError(f"{where}: scene name {name!r} appears twice")
+        seed = None
         if p.startswith(SYNTH_PREFIX):
-            sub = discover_scenes(p)
-            scene_path, preset = next(iter(sub.values())).path, p[len(SYNTH_PREFIX):]
+            spec = next(iter(discover_scenes(p).values()))
+            scene_path, preset, seed = spec.path, spec.synth_preset, spec.synth_seed
         else:
             scene_path = Path(p) if Path(p).is_absolute() else path.parent / p
             preset = None
@@ -166,7 +196,8 @@ def read_scene_sheet(path: str | Path) -> dict[str, SceneSpec]:
                 overrides.setdefault(section, {})[key] = yaml.safe_load(cell)
             except yaml.YAMLError:
                 raise ConfigError(f"{where}, column {c}: cannot read value {cell!r}") from None
-        scenes[name] = SceneSpec(name, scene_path, overrides, synth_preset=preset)
+        scenes[name] = SceneSpec(name, scene_path, overrides, synth_preset=preset,
+                                 synth_seed=seed)
     if not scenes:
         raise ConfigError(f"scenes sheet {path}: no rows")
     return scenes
@@ -212,9 +243,10 @@ def validate_scene(scene_dir: str | Path) -> dict:
     if ev.is_dir():
         parts = {k: {p.stem: p for p in list_images(ev / k)} for k in ("before", "after", "masks")}
         stems = set(parts["before"]) | set(parts["after"])
-        if not stems:
+        if not stems and not (ev / "boxes.json").is_file():
             raise SceneError(f"{ev}: folder exists but eval/before/ and eval/after/ hold no "
-                             "images; remove eval/ or add the evaluation pairs")
+                             "images (and there is no eval/boxes.json); remove eval/ or add the "
+                             "evaluation pairs")
         for stem in sorted(stems):
             if stem not in parts["masks"]:
                 have = [k for k in ("before", "after") if stem in parts[k]]

@@ -6,11 +6,13 @@ Writes into ``out_dir`` (``results/``), atomically:
   ``n_<m>`` views with a defined value) and the pooled figures (``<m>_pooled``) of
   :func:`gdiff.metrics.aggregate`, plus rows with ``scene == "ALL"``: per method, the mean
   over scenes of the per-scene means (``<m>_mean``) and figures pooled over every view of
-  every scene (``<m>_pooled``);
+  every scene (``<m>_pooled``; e.g. ``obj_R_pooled``, the object recall: objects found over
+  objects);
 * ``timings.csv`` — one row per (scene, rule) from Snakemake's ``benchmark:`` TSVs: wall
   ``seconds`` (mean over repeats), ``cpu_seconds``, ``max_rss_mb`` (largest over repeats);
-* ``plots/<metric>.png`` — grouped bars, scene x method, for F1, IoU, P, R (pooled), box F1
-  and box AP (pooled); ``plots/timings.png`` — stacked seconds per rule for each scene.
+* ``plots/<metric>.png`` — grouped bars, scene x method, for F1, IoU, P, R (pooled), box F1,
+  box AP and object recall (pooled); ``plots/timings.png`` — stacked seconds per rule for each
+  scene.
 """
 
 from __future__ import annotations
@@ -24,12 +26,12 @@ import pandas as pd
 
 from .errors import SceneError
 from .io import atomic_path, write_csv
-from .metrics import BOX_METRICS, PIXEL_METRICS, aggregate
+from .metrics import BOX_METRICS, GTBOX_METRICS, OBJECT_METRICS, PIXEL_METRICS, aggregate
 
 log = logging.getLogger("gdiff.summary")
 
 PLOT_METRICS = ("F1_pooled", "IoU_pooled", "P_pooled", "R_pooled", "box_F1_pooled",
-                "box_AP_pooled")
+                "box_AP_pooled", "obj_R_pooled")
 
 
 def _read_csv(path: Path, what: str) -> pd.DataFrame:
@@ -69,7 +71,7 @@ def summarize_metrics(metrics: pd.DataFrame, boxes: pd.DataFrame | None) -> pd.D
     overall = aggregate(every, None if boxes is None else boxes.assign(scene="ALL"),
                         by=("scene", "method"))
     # "ALL" means: mean over scenes of the per-scene means (each scene weighs the same)
-    for m in PIXEL_METRICS + BOX_METRICS:
+    for m in PIXEL_METRICS + BOX_METRICS + OBJECT_METRICS + GTBOX_METRICS:
         col = f"{m}_mean"
         if col in per:
             overall[col] = overall["method"].map(per.groupby("method")[col].mean())

@@ -1,5 +1,7 @@
 """Evaluate stage and baselines on small image pairs with known changes."""
 
+import math
+
 import numpy as np
 import pandas as pd
 import pytest
@@ -189,3 +191,129 @@ def test_idcompare_uses_model_depth_to_ignore_a_moved_shadow(tmp_path):
     on = E.EvalOptions(methods=["idcompare"], idcompare_depth=True)
     E.build_methods(on, depth=depth)["idcompare"](view)
     assert len(calls) == 4  # idcompare_depth=True: rendered at t=0 and t=1
+
+
+def test_object_recall_from_before_and_after_masks(tmp_path):
+    """A moved object is two object views (its place before, its place after); a method that
+    finds only the new place finds one of two. Without mask_before/mask_after the change mask's
+    regions are the objects."""
+    root, boxes = _scene(tmp_path)
+    before_box, after_box = (40, 4, 56, 16), boxes["000"]
+    mb = np.zeros((H, W), bool)
+    mb[before_box[1]:before_box[3], before_box[0]:before_box[2]] = True
+    ma = read_mask(root / "eval" / "masks" / "000.png")
+    write_mask(root / "eval" / "mask_before" / "000.png", mb)
+    write_mask(root / "eval" / "mask_after" / "000.png", ma)
+    write_mask(root / "eval" / "masks" / "000.png", mb | ma)
+
+    def only_after(view):  # predicts the ground truth of the after state only
+        if view.mask_after is not None:
+            return read_mask(view.mask_after)
+        return view.read_gt()
+
+    opts = E.EvalOptions(methods=["pixel_diff"], overlays=False)
+    out = tmp_path / "out"
+    df = E.evaluate_scene(root, None, out, "s", {"pixel_diff": only_after}, opts)
+    v = df.set_index("view")
+    assert (v.loc["000", "obj_N"], v.loc["000", "obj_found"]) == (2, 1)
+    assert (v.loc["001", "obj_N"], v.loc["001", "obj_found"]) == (1, 1)
+    summ = pd.read_csv(out / "scene_summary.csv").iloc[0]
+    assert summ["obj_R_pooled"] == pytest.approx(3 / 4)
+    back = pd.read_csv(out / "metrics.csv")
+    assert back["obj_N"].tolist() == [2, 1, 1]
+    # an object mask of another size than the change mask is named
+    write_mask(root / "eval" / "mask_after" / "000.png", np.zeros((H // 2, W // 2), bool))
+    with pytest.raises(SceneError, match="mask_after/000.png"):
+        E.evaluate_scene(root, None, tmp_path / "o2", "s", {"pixel_diff": only_after}, opts)
+
+
+def test_box_ground_truth_on_eval_views_and_training_images(tmp_path):
+    """eval/boxes.json in the ObChange layout: boxes of an eval view are scored beside its mask;
+    boxes of a training image (after/v00.png) make a box view where only the partition is
+    rendered, at that image's camera (at the image's size), and the others are skipped."""
+    import json
+
+    root, boxes = _scene(tmp_path)
+    from gdiff.cameras import load_cameras
+
+    cams = load_cameras(root / "cameras.json")
+    # a training image at half the eval size, camera given at the eval size
+    write_image(root / "after" / "v00.png", _texture(7)[::2, ::2])
+    write_image(root / "before" / "v00.png", _texture(7)[::2, ::2])
+    cams.append(Camera(2 * W, 2 * H, 100.0, 100.0, W, H, look_at([9, -3.0, 1.0], [0, 0, 0]),
+                       image="after/v00.png", set="after", time=1))
+    save_cameras(root / "cameras.json", cams)
+    (root / "eval" / "boxes.json").write_text(json.dumps({"note": "pixels", "views": {
+        "001.png": {"boxes_xyxy_px": [list(boxes["001"]), [0, 0, 6, 6]]},
+        "v00.png": {"after_src": "x.png", "boxes_xyxy_px": [[2, 2, 12, 10], [20, 14, 30, 22]]}}}))
+    seen = []
+
+    def change_map(pmodel, camera, t=None):
+        seen.append((camera.width, camera.height))
+        if round(camera.center[0]) == 9:  # the training view: the first box only, plus a
+            m = np.zeros((camera.height, camera.width), bool)  # far false alarm
+            m[3:9, 3:11] = True
+            m[0:4, 28:32] = True
+            return {"mask": m}
+        name = pmodel[round(camera.center[0])]
+        return {"mask": read_mask(root / "eval" / "masks" / f"{name}.png")}
+
+    methods = {"pixel_diff": B.pixel_diff_method(blur_sigma=1.0),
+               "partition": B.partition_method(dict(enumerate(sorted(boxes))),
+                                               render_change_map=change_map)}
+    opts = E.EvalOptions(box_margin=4.0)
+    out = tmp_path / "out"
+    df = E.evaluate_scene(root, root / "cameras.json", out, "s", methods, opts)
+    assert (W // 2, H // 2) in seen  # rendered at the training image's size
+    bv = df[df["view"] == "after/v00"]
+    assert list(bv["method"]) == ["partition"]  # pixel_diff needs an eval pair: skipped
+    r = bv.iloc[0]
+    assert (r["gtbox_N"], r["gtbox_found"]) == (2, 1) and math.isnan(r["F1"])
+    # margin 4 px at the image's size (32 px wide) = 2 px: the 4x4 block at x 28..32 is far
+    assert r["far_FP"] == 16 and r["far_frac"] == pytest.approx(16 / (W // 2 * H // 2))
+    ev = df[(df["view"] == "001") & (df["method"] == "partition")].iloc[0]
+    assert (ev["gtbox_N"], ev["gtbox_found"]) == (2, 1) and ev["F1"] == 1.0
+    assert df[df["view"] == "000"]["gtbox_N"].isna().all()
+    summ = pd.read_csv(out / "scene_summary.csv").set_index("method")
+    assert summ.loc["partition", "gtbox_R_pooled"] == pytest.approx(2 / 4)
+    assert (out / "overlays" / "after" / "v00.png").is_file()
+    # a malformed box and an unknown image are named
+    (root / "eval" / "boxes.json").write_text(json.dumps({"001": [[5, 5, 2, 9]]}))
+    with pytest.raises(SceneError, match="'001'"):
+        E.find_eval_views(root)
+    (root / "eval" / "boxes.json").write_text(json.dumps({"after/zz.png": [[1, 1, 2, 2]]}))
+    with pytest.raises(SceneError, match="zz.png"):
+        E.find_eval_views(root)
+
+
+def test_box_only_scene_validates(tmp_path):
+    """A real capture with boxes only (no eval pairs): eval/boxes.json may be all of eval/."""
+    from gdiff.scene import validate_scene
+
+    root = tmp_path / "s"
+    for d in ("before", "after"):
+        for i in range(3):
+            write_image(root / d / f"{i:03d}.png", _texture(i))
+    (root / "eval").mkdir()
+    (root / "eval" / "boxes.json").write_text('{"000.png": [[1, 2, 10, 12]]}')
+    assert validate_scene(root)["eval_views"] == []
+    views = E.find_eval_views(root)
+    assert [v.name for v in views] == ["after/000"] and views[0].mask is None
+    assert views[0].box_size == (W, H) and views[0].shape() == (H, W)
+
+
+def test_render_quality_psnr_at_eval_views(tmp_path):
+    root, boxes = _scene(tmp_path, post_only=("002",))
+    views = E.find_eval_views(root, root / "cameras.json")
+    seen = []
+
+    def render(camera, t):  # the true image at t=1, the true image + 0.1 at t=0
+        seen.append((camera.width, camera.height, t))
+        v = views[round(camera.center[0])]
+        return v.read_image(1) if t == 1.0 else np.clip(v.read_image(0) + 0.1, 0, 1)
+
+    q = E.render_quality(views, render)
+    assert len(q) == 5 and set(seen) >= {(W, H, 0.0), (W, H, 1.0)}  # 002 has no before image
+    assert (q[q["time"] == 1]["psnr"] > 90).all()
+    t0 = q[q["time"] == 0]["psnr"]
+    assert t0.between(19.0, 20.01).all()  # +0.1 everywhere (a little less where clipped)

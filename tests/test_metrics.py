@@ -162,3 +162,53 @@ def test_aggregate_mean_ignores_nan_and_pooled_uses_counts():
     # the same after a CSV round trip (matched read back as text/bool)
     agg2 = M.aggregate(df, boxes.astype({"matched": str})).iloc[0]
     assert agg2["box_AP_pooled"] == pytest.approx(1.0)
+
+
+def test_object_recall_half_of_each_object():
+    h, w = 20, 30
+    before = _rect(h, w, (0, 0, 4, 4))  # object A (16 px), seen before only
+    after = _rect(h, w, (10, 10, 20, 14), (24, 0, 28, 2))  # B (40 px) and C (8 px) after
+    objects = M.object_regions([before, after])
+    assert sorted(int(o.sum()) for o in objects) == [8, 16, 40]
+    pred = np.zeros((h, w), bool)
+    pred[0:2, 0:4] = True  # exactly half of A: found
+    pred[10:14, 10:14] = True  # 16 of 40 px of B: missed
+    s = M.object_scores(pred, objects)
+    assert (s["obj_N"], s["obj_found"]) == (3, 1) and s["obj_R"] == pytest.approx(1 / 3)
+    pred[0:2, 24:28] = True  # all of C
+    assert M.object_scores(pred, objects)["obj_found"] == 2
+    # the fraction is an option; small regions are dropped like boxes
+    assert M.object_scores(pred, objects, found_fraction=0.6)["obj_found"] == 1
+    assert len(M.object_regions([before, after], min_area=10)) == 2
+    s = M.object_scores(pred, [])
+    assert s["obj_N"] == 0 and math.isnan(s["obj_R"])
+    # pooled over views: found / objects
+    df = pd.DataFrame([{"scene": "s", "method": "m", "view": "a", "TP": 1, "FP": 0, "FN": 0,
+                        "obj_N": 3, "obj_found": 1, "obj_R": 1 / 3},
+                       {"scene": "s", "method": "m", "view": "b", "TP": 1, "FP": 0, "FN": 0,
+                        "obj_N": 1, "obj_found": 1, "obj_R": 1.0}])
+    agg = M.aggregate(df).iloc[0]
+    assert agg["obj_R_pooled"] == pytest.approx(2 / 4)
+    assert agg["obj_R_mean"] == pytest.approx((1 / 3 + 1) / 2)
+
+
+def test_gt_box_scores_core_and_far_fraction():
+    h, w = 100, 100
+    boxes = [[10, 10, 30, 50]]  # core: x 15..25, y 20..40 (200 px)
+    pred = np.zeros((h, w), bool)
+    pred[20:40, 15:20] = True  # half the core
+    s = M.gt_box_scores(pred, boxes, margin=5)
+    assert (s["gtbox_N"], s["gtbox_found"], s["far_FP"]) == (1, 1, 0)
+    pred[:] = False
+    pred[0:10, 0:10] = True  # a ring around the box but not its core: missed, near
+    pred[90:100, 90:100] = True  # far away: 100 px
+    s = M.gt_box_scores(pred, boxes, margin=10)
+    assert s["gtbox_found"] == 0 and s["gtbox_R"] == 0.0
+    assert s["far_FP"] == 100 and s["far_frac"] == pytest.approx(100 / (h * w))
+    # with a small margin the top-left block is far, too (pixels 0..4 are > 5 px off the box)
+    assert M.gt_box_scores(pred, boxes, margin=5)["far_FP"] == 100 + 100 - 25
+    # fractional boxes, a box reaching over the border, no boxes
+    s = M.gt_box_scores(np.ones((h, w), bool), [[80.4, -5, 110, 20.6]], margin=0)
+    assert s["gtbox_found"] == 1
+    s = M.gt_box_scores(pred, np.zeros((0, 4)))
+    assert s["gtbox_N"] == 0 and math.isnan(s["gtbox_R"]) and s["far_FP"] == 200

@@ -112,6 +112,20 @@ def test_discover_single_folder_and_folder_of_scenes(tmp_path):
 def test_discover_synth():
     s = discover_scenes("synth:demo", synth_root="resources/synth")
     assert s["demo"].synth_preset == "demo" and s["demo"].path == Path("resources/synth/demo")
+    assert s["demo"].synth_seed is None
+    s = discover_scenes("synth:demo:3", synth_root="r")
+    assert list(s) == ["demo_s3"] and s["demo_s3"].path == Path("r/demo_s3")
+    assert (s["demo_s3"].synth_preset, s["demo_s3"].synth_seed) == ("demo", 3)
+    with pytest.raises(ConfigError, match="whole number"):
+        discover_scenes("synth:demo:x")
+
+
+def test_sheet_with_synth_seeds(tmp_path):
+    sheet = tmp_path / "scenes.tsv"
+    sheet.write_text("name\tpath\n" "d0\tsynth:demo:0\n" "d1\tsynth:demo:1\n" "t\tsynth:tiny\n")
+    s = discover_scenes(sheet)
+    assert [(v.synth_preset, v.synth_seed, v.path.name) for v in s.values()] == [
+        ("demo", 0, "demo_s0"), ("demo", 1, "demo_s1"), ("tiny", None, "tiny")]
 
 
 def test_discover_sheet_with_overrides(tmp_path):

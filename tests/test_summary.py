@@ -27,6 +27,7 @@ def _scene_csv(root, scene, views):
     for view, (gt, preds) in views.items():
         for method, pred in preds.items():
             s, b = M.score_view(pred, gt)
+            s.update(M.object_scores(pred, M.object_regions(gt)))
             rows.append({"scene": scene, "view": view, "method": method, **s, "seconds": 0.1})
             boxes.append(b.assign(scene=scene, view=view, method=method))
     out = root / scene / "eval"
@@ -78,6 +79,10 @@ def test_summary_two_scenes(tmp_path):
     allb = s.loc[("ALL", "bad")]
     assert allb["box_TP"] == 1 and allb["box_FN"] == 1 and allb["box_FP"] == 2
     assert allb["box_R_pooled"] == 0.5
+    # object recall pooled over both scenes: "bad" covers half of alpha's object (found) and
+    # nothing of beta's -> 1 of 2; "good" covers half of beta's -> 2 of 2
+    assert allb["obj_N"] == 2 and allb["obj_R_pooled"] == 0.5
+    assert allg["obj_R_pooled"] == 1.0 and s.loc[("beta", "bad"), "obj_R_pooled"] == 0.0
     assert 0 < allb["box_AP_pooled"] <= 0.5
     assert s.loc[("beta", "bad"), "P_mean"] == 0.0
 

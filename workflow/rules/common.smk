@@ -76,6 +76,16 @@ def options(section):
     return fn
 
 
+# synthetic scene folder name (resources/synth/<name>) -> (preset, own seed or None)
+SYNTH = {s.path.name: (s.synth_preset, s.synth_seed) for s in SCENES.values() if s.synth_preset}
+
+
+def synth_params(wildcards):
+    """The synth params: preset and seed (config synth_seed unless the scene has its own)."""
+    preset, seed = SYNTH[wildcards.synth]
+    return {"preset": preset, "seed": config["synth_seed"] if seed is None else seed}
+
+
 def res(scene, *parts):
     return str(Path("results", scene, *parts))
 

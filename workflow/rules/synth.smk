@@ -1,17 +1,20 @@
-# Built-in synthetic scenes (scenes: synth:<preset>), generated into resources/synth/.
-
+# Built-in synthetic scenes (scenes: synth:<preset> or synth:<preset>:<seed>), generated into
+# resources/synth/<preset> (seed: config synth_seed) or resources/synth/<preset>_s<seed>
+# (SYNTH and synth_params in common.smk).
 
 rule synth:
+    wildcard_constraints:
+        synth="|".join(map(re.escape, SYNTH)) if SYNTH else "[^/]+",
     output:
-        directory("resources/synth/{preset}"),
+        directory("resources/synth/{synth}"),
     params:
-        seed=config["synth_seed"],
+        synth=synth_params,
     conda:
         "../envs/gdiff.yaml"
     log:
-        "logs/synth/{preset}.log",
+        "logs/synth/{synth}.log",
     benchmark:
-        "results/benchmarks/synth_{preset}.tsv"
+        "results/benchmarks/synth_{synth}.tsv"
     script:
         "../scripts/synth.py"
 

@@ -3,5 +3,6 @@ import _bootstrap  # noqa: F401  (gdiff from this checkout)
 from gdiff.stage import run_stage
 from gdiff.synth import make_scene
 
-run_stage(snakemake, lambda: make_scene(snakemake.output[0], preset=snakemake.wildcards.preset,
-                                        seed=snakemake.params.seed, overwrite=True))
+run_stage(snakemake, lambda: make_scene(snakemake.output[0],
+                                        preset=snakemake.params.synth["preset"],
+                                        seed=snakemake.params.synth["seed"], overwrite=True))

@@ -1,0 +1,243 @@
+"""The bench table: quality and cost of a workflow run, one row per scene and method.
+
+Read by ``benchmarks/bench.py`` (which runs the workflow first unless ``--no-run``); pure
+functions on the files of a results folder (``results/``), so a finished or half-finished run
+can be tabulated at any time.
+
+Per scene and method (from ``<scene>/eval/metrics.csv``, aggregated as the summary rule does with
+:func:`gdiff.summary.summarize_metrics`): pooled ``P, R, F1, IoU``, object recall ``obj_R`` and,
+for scenes with box ground truth, box recall ``gtbox_R`` and ``far_frac`` (share of the image
+flagged farther than the margin from every box).
+
+Per scene (the same value on each of its rows):
+
+* per rule ``wall_<rule>`` (s), ``cpu_<rule>`` (user + system s), ``mb_<rule>`` (peak resident
+  MB), from Snakemake's benchmark files ``<scene>/benchmarks/<rule>.tsv`` (the figures the summary
+  rule copies into ``timings.csv``; read from the TSVs so a run still in progress is covered,
+  else from ``timings.csv``);
+* ``wall_s`` and ``cpu_s``: the sums over the scene's rules (its stages run one after another,
+  so ``wall_s`` is the scene's whole-workflow wall time when it runs alone), ``peak_mb`` the
+  largest rule peak;
+* ``disk_mb``: size of the files under ``<scene>/`` (MB = 10^6 bytes);
+* ``psnr_t0``, ``psnr_t1``: the fit's PSNR (dB) per time, mean over the eval views from
+  ``eval/fit_quality.csv`` (the evaluate rule renders the fitted model there), else over the
+  training views from ``fit/quality.csv`` (``psnr_views`` says which: ``eval`` or ``train``).
+
+Synthetic scenes run at several seeds (``<preset>_s<seed>``) get extra rows ``<preset> (mean of
+N)``: every number averaged over the seeds.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import re
+from pathlib import Path
+from typing import Iterable, Mapping
+
+import numpy as np
+import pandas as pd
+
+from .summary import collect_metrics, collect_timings, summarize_metrics
+
+QUALITY = {"P_pooled": "P", "R_pooled": "R", "F1_pooled": "F1", "IoU_pooled": "IoU",
+           "obj_R_pooled": "obj_R", "gtbox_R_pooled": "box_R", "far_frac_pooled": "far_frac"}
+SCENE_COLUMNS = ["wall_s", "cpu_s", "peak_mb", "disk_mb", "psnr_t0", "psnr_t1", "psnr_views"]
+# the workflow's rules in run order (others found in a results folder are appended)
+RULE_ORDER = ["manifest", "poses", "fit", "interpolate", "render", "segment", "compare",
+              "partition", "evaluate"]
+
+
+def scene_folders(results: str | Path) -> list[str]:
+    """The scene folders of a results folder (those with ``input/``, ``benchmarks/`` or
+    ``eval/``), sorted."""
+    results = Path(results)
+    if not results.is_dir():
+        return []
+    return sorted(p.name for p in results.iterdir() if p.is_dir() and any(
+        (p / d).is_dir() for d in ("input", "benchmarks", "eval")))
+
+
+def disk_mb(folder: str | Path) -> float:
+    """Total size of the files under ``folder`` in MB (10^6 bytes); symlinks not followed."""
+    total = 0
+    for root, _, files in os.walk(folder):
+        for f in files:
+            try:
+                total += os.lstat(os.path.join(root, f)).st_size
+            except OSError:  # removed while walking (a run in progress)
+                pass
+    return total / 1e6
+
+
+def fit_psnr(scene_results: str | Path) -> dict:
+    """``{"psnr_t0", "psnr_t1", "psnr_views"}`` of ``results/<scene>/`` from
+    ``eval/fit_quality.csv``, else ``fit/quality.csv`` (module docstring); NaN and ``""`` when
+    neither has rows."""
+    out = {"psnr_t0": math.nan, "psnr_t1": math.nan, "psnr_views": ""}
+    root = Path(scene_results)
+    q = None
+    for rel, kind in (("eval/fit_quality.csv", "eval"), ("fit/quality.csv", "train")):
+        if (root / rel).is_file():
+            q = pd.read_csv(root / rel)
+            if len(q) and {"time", "psnr"} <= set(q.columns):
+                out["psnr_views"] = kind
+                break
+    if not out["psnr_views"]:
+        return out
+    for t in (0, 1):
+        v = pd.to_numeric(q.loc[np.isclose(q["time"].astype(float), t), "psnr"], errors="coerce")
+        out[f"psnr_t{t}"] = float(v.mean()) if v.notna().any() else math.nan
+    return out
+
+
+def scene_timings(results: str | Path, scenes: Iterable[str]) -> pd.DataFrame:
+    """``scene, rule, seconds, cpu_seconds, max_rss_mb`` per scene and rule: from the
+    benchmark TSVs, else from ``results/timings.csv`` (module docstring)."""
+    results = Path(results)
+    tsvs = {(s, p.stem): p for s in scenes
+            for p in sorted((results / s / "benchmarks").glob("*.tsv"))}
+    t = collect_timings(tsvs)
+    have = set(t["scene"])
+    missing = [s for s in scenes if s not in have]
+    if missing and (results / "timings.csv").is_file():
+        old = pd.read_csv(results / "timings.csv")
+        t = pd.concat([t, old[old["scene"].isin(missing)]], ignore_index=True)
+    return t
+
+
+def synth_groups(scenes: Iterable[str], presets: Iterable[str]) -> dict[str, list[str]]:
+    """``{preset: [scene names]}`` for scenes named ``<preset>_s<seed>`` (the workflow's name for
+    ``synth:<preset>:<seed>``) of the given presets, seeds in numeric order. (Presets must be
+    named: a scene folder may be called like ``desk_s1`` too.)"""
+    presets = set(presets)
+    groups: dict[str, list[tuple[int, str]]] = {}
+    for s in scenes:
+        m = re.fullmatch(r"(.+)_s(\d+)", s)
+        if m and m.group(1) in presets:
+            groups.setdefault(m.group(1), []).append((int(m.group(2)), s))
+    return {k: [s for _, s in sorted(v)] for k, v in sorted(groups.items())}
+
+
+def build_table(summary: pd.DataFrame, timings: pd.DataFrame, scene_info: Mapping[str, dict],
+                groups: Mapping[str, list[str]] | None = None) -> pd.DataFrame:
+    """The bench table (module docstring) from its parts.
+
+    ``summary``: per (scene, method) rows of :func:`gdiff.summary.summarize_metrics` (rows of
+    scene ``ALL`` are ignored); ``timings``: ``scene, rule, seconds, cpu_seconds, max_rss_mb``;
+    ``scene_info``: per scene ``disk_mb``, ``psnr_t0``, ``psnr_t1``, ``psnr_views``;
+    ``groups``: ``{preset: [scenes]}`` whose means are appended as ``<preset> (mean of N)``.
+    Scenes without metrics (no eval views, or evaluate not run yet) get one row with an empty
+    method. Columns: ``scene, method, n_views`` + quality + :data:`SCENE_COLUMNS` + per rule
+    ``wall_/cpu_/mb_<rule>``.
+    """
+    summary = summary[summary["scene"] != "ALL"] if len(summary) else summary
+    scenes = list(dict.fromkeys(list(summary["scene"]) if len(summary) else []))
+    scenes = list(dict.fromkeys(scenes + list(scene_info) + list(timings["scene"])))
+    rules = [r for r in RULE_ORDER if r in set(timings["rule"])]
+    rules += sorted(set(timings["rule"]) - set(rules))
+    per_scene = {}
+    for s in scenes:
+        t = timings[timings["scene"] == s].set_index("rule")
+        row: dict = {}
+        for r in rules:
+            have = r in t.index
+            row[f"wall_{r}"] = float(t.loc[r, "seconds"]) if have else math.nan
+            row[f"cpu_{r}"] = float(t.loc[r, "cpu_seconds"]) if have else math.nan
+            row[f"mb_{r}"] = float(t.loc[r, "max_rss_mb"]) if have else math.nan
+        row["wall_s"] = float(t["seconds"].sum(min_count=1)) if len(t) else math.nan
+        row["cpu_s"] = float(t["cpu_seconds"].sum(min_count=1)) if len(t) else math.nan
+        row["peak_mb"] = float(t["max_rss_mb"].max()) if len(t) else math.nan
+        info = scene_info.get(s, {})
+        for c in ("disk_mb", "psnr_t0", "psnr_t1"):
+            row[c] = float(info.get(c, math.nan))
+        row["psnr_views"] = info.get("psnr_views", "")
+        per_scene[s] = row
+    rows = []
+    for s in scenes:
+        sel = summary[summary["scene"] == s] if len(summary) else summary
+        methods = list(sel.iterrows()) if len(sel) else [(None, None)]
+        for _, r in methods:
+            row = {"scene": s, "method": "" if r is None else r["method"],
+                   "n_views": math.nan if r is None else r.get("n_views", math.nan)}
+            for src, dst in QUALITY.items():
+                row[dst] = math.nan if r is None else float(r.get(src, math.nan))
+            row.update(per_scene[s])
+            rows.append(row)
+    cols = (["scene", "method", "n_views"] + list(QUALITY.values()) + SCENE_COLUMNS
+            + [f"{k}_{r}" for r in rules for k in ("wall", "cpu", "mb")])
+    table = pd.DataFrame(rows, columns=cols)
+    for preset, members in (groups or {}).items():
+        g = table[table["scene"].isin(members)]
+        if g.empty:
+            continue
+        n = g["scene"].nunique()
+        num = [c for c in cols if c not in ("scene", "method", "psnr_views")]
+        mean = g.groupby("method", sort=False)[num].mean().reset_index()
+        mean.insert(0, "scene", f"{preset} (mean of {n})")
+        mean["psnr_views"] = ",".join(sorted(set(g["psnr_views"]) - {""}))
+        table = pd.concat([table, mean[cols]], ignore_index=True)
+    return table
+
+
+def _fmt(v, digits: int) -> str:
+    if isinstance(v, str):
+        return v
+    if v is None or (isinstance(v, float) and math.isnan(v)):
+        return "-"
+    return f"{v:.{digits}f}"
+
+
+def format_table(table: pd.DataFrame, markdown: bool = False) -> str:
+    """The table as text: quality per row, the scene's cost columns on its first row only, per
+    rule one cell ``wall/cpu/MB``. Plain aligned text, or a markdown table."""
+    rules = [c[5:] for c in table.columns if c.startswith("wall_") and c != "wall_s"]
+    show_box = table[["box_R", "far_frac"]].notna().any().any()
+    head = ["scene", "method", "views", "P", "R", "F1", "IoU", "obj_R"]
+    head += ["box_R", "far"] if show_box else []
+    head += ["PSNR t0/t1", "wall s", "CPU s", "peak MB", "disk MB"]
+    head += [f"{r} s/cpu/MB" for r in rules]
+    lines, last = [], None
+    for _, r in table.iterrows():
+        cells = [r["scene"] if r["scene"] != last else "", r["method"] or "-",
+                 _fmt(r["n_views"], 0)]
+        cells += [_fmt(r[c], 3) for c in ("P", "R", "F1", "IoU", "obj_R")]
+        cells += [_fmt(r["box_R"], 3), _fmt(r["far_frac"], 3)] if show_box else []
+        if r["scene"] != last:
+            views = f" ({r['psnr_views']})" if r["psnr_views"] else ""
+            cells += [f"{_fmt(r['psnr_t0'], 1)}/{_fmt(r['psnr_t1'], 1)}{views}",
+                      _fmt(r["wall_s"], 0), _fmt(r["cpu_s"], 0), _fmt(r["peak_mb"], 0),
+                      _fmt(r["disk_mb"], 1)]
+            cells += [f"{_fmt(r[f'wall_{x}'], 0)}/{_fmt(r[f'cpu_{x}'], 0)}/"
+                      f"{_fmt(r[f'mb_{x}'], 0)}" for x in rules]
+        else:
+            cells += [""] * (5 + len(rules))
+        lines.append(cells)
+        last = r["scene"]
+    if markdown:
+        out = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+        out += ["| " + " | ".join(c for c in cells) + " |" for cells in lines]
+        return "\n".join(out) + "\n"
+    widths = [max(len(h), *(len(c[i]) for c in lines)) if lines else len(h)
+              for i, h in enumerate(head)]
+    fmt = lambda cells: "  ".join(c.ljust(w) for c, w in zip(cells, widths)).rstrip()  # noqa: E731
+    return "\n".join([fmt(head), fmt(["-" * w for w in widths])] + [fmt(c) for c in lines]) + "\n"
+
+
+def read_results(results: str | Path, scenes: Iterable[str] | None = None,
+                 presets: Iterable[str] = ()) -> pd.DataFrame:
+    """The bench table of a results folder (every scene folder in it, or ``scenes``), with the
+    mean rows of the synthetic presets ``presets`` (over their ``<preset>_s<seed>`` scenes)."""
+    results = Path(results)
+    scenes = list(scenes) if scenes is not None else scene_folders(results)
+    metrics_csvs = [results / s / "eval" / "metrics.csv" for s in scenes]
+    metrics_csvs = [p for p in metrics_csvs if p.is_file()]
+    summary = pd.DataFrame(columns=["scene", "method"])
+    if metrics_csvs:
+        metrics, boxes = collect_metrics(metrics_csvs)
+        if len(metrics):
+            summary = summarize_metrics(metrics, boxes)
+    info = {s: {"disk_mb": disk_mb(results / s) if (results / s).is_dir() else math.nan,
+                **fit_psnr(results / s)} for s in scenes}
+    timings = scene_timings(results, scenes)
+    return build_table(summary, timings, info, synth_groups(scenes, presets))

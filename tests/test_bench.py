@@ -1,0 +1,77 @@
+"""The bench table (gdiff.bench) from a made-up results folder."""
+
+import math
+
+import pandas as pd
+import pytest
+
+from gdiff import bench as Bn
+from gdiff.io import write_csv
+
+BENCH_HEADER = "s\th:m:s\tmax_rss\tmax_vms\tmax_uss\tmax_pss\tio_in\tio_out\tmean_load\tcpu_time\n"
+
+
+def _scene(results, name, tps, rules, psnr=(20.0, 22.0)):
+    """results/<name>/: eval/metrics.csv (one view per (TP, FN) of method m; FP 0; objects:
+    found when TP >= FN), benchmarks/<rule>.tsv (wall, rss, cpu), fit/quality.csv."""
+    rows = [{"scene": name, "view": f"{i:03d}", "method": "m", "TP": tp, "FP": 0, "FN": fn,
+             "obj_N": 1, "obj_found": int(tp >= fn)} for i, (tp, fn) in enumerate(tps)]
+    write_csv(results / name / "eval" / "metrics.csv", pd.DataFrame(rows))
+    for rule, (wall, rss, cpu) in rules.items():
+        p = results / name / "benchmarks" / f"{rule}.tsv"
+        p.parent.mkdir(parents=True, exist_ok=True)
+        p.write_text(BENCH_HEADER + f"{wall}\t0:00:01\t{rss}\t1\t1\t1\t0\t0\t0\t{cpu}\n")
+    write_csv(results / name / "fit" / "quality.csv", pd.DataFrame(
+        [{"image": "a.png", "set": "before", "time": 0.0, "psnr": psnr[0], "ssim": 0.9},
+         {"image": "b.png", "set": "after", "time": 1.0, "psnr": psnr[1], "ssim": 0.9}]))
+
+
+def test_bench_table_pooled_costs_and_seed_means(tmp_path):
+    res = tmp_path / "results"
+    # two seeds of a preset and one real scene (named like a seed, but not a preset given)
+    _scene(res, "demo_s0", [(30, 10), (10, 30)], {"fit": (100, 900, 180), "poses": (10, 300, 8)})
+    _scene(res, "demo_s1", [(20, 20)], {"fit": (300, 1100, 500), "poses": (30, 500, 12)},
+           psnr=(24.0, 26.0))
+    _scene(res, "desk_s1", [(5, 5)], {"fit": (50, 700, 90)})
+    (res / "desk_s1" / "eval" / "fit_quality.csv").write_text(
+        "view,time,psnr\n000,0,17\n001,0,19\n000,1,19\n")
+    (res / "plots").mkdir()  # not a scene
+    assert Bn.scene_folders(res) == ["demo_s0", "demo_s1", "desk_s1"]
+    t = Bn.read_results(res, presets=["demo"]).set_index("scene")
+    assert list(t.index) == ["demo_s0", "demo_s1", "desk_s1", "demo (mean of 2)"]
+    s0 = t.loc["demo_s0"]
+    assert s0["R"] == pytest.approx(40 / 80) and s0["P"] == 1.0 and s0["obj_R"] == 0.5
+    assert s0["n_views"] == 2 and math.isnan(s0["box_R"])
+    assert s0["wall_fit"] == 100 and s0["cpu_poses"] == 8 and s0["mb_fit"] == 900
+    assert (s0["wall_s"], s0["cpu_s"], s0["peak_mb"]) == (110, 188, 900)
+    assert (s0["psnr_t0"], s0["psnr_t1"], s0["psnr_views"]) == (20.0, 22.0, "train")
+    assert s0["disk_mb"] > 0
+    # the real scene's PSNR is over its eval views (evaluate's fit_quality.csv); no poses timing
+    d = t.loc["desk_s1"]
+    assert (d["psnr_t0"], d["psnr_t1"], d["psnr_views"]) == (18.0, 19.0, "eval")
+    assert math.isnan(d["wall_poses"]) and d["wall_s"] == 50
+    # seed means: every number averaged over the two seeds
+    mean = t.loc["demo (mean of 2)"]
+    assert mean["R"] == pytest.approx((0.5 + 0.5) / 2) and mean["obj_R"] == pytest.approx(0.75)
+    assert mean["wall_s"] == pytest.approx((110 + 330) / 2)
+    assert mean["psnr_t0"] == pytest.approx(22.0) and mean["peak_mb"] == pytest.approx(1000)
+    # text and markdown: one line per scene x method, rules in run order
+    text = Bn.format_table(t.reset_index())
+    head = text.splitlines()[0]
+    assert head.index("poses s/cpu/MB") < head.index("fit s/cpu/MB")
+    assert "box_R" not in head  # no scene has boxes
+    assert len(text.splitlines()) == 2 + 4
+    md = Bn.format_table(t.reset_index(), markdown=True)
+    assert md.splitlines()[2].startswith("| demo_s0 | m | 2 | 1.000 | 0.500 |")
+    assert "| 100/180/900 |" in md.splitlines()[2]
+    # a scene without metrics yet still gets a row with its costs
+    (res / "demo_s1" / "eval" / "metrics.csv").unlink()
+    t2 = Bn.read_results(res, ["demo_s1"], presets=[]).set_index("scene")
+    assert t2.loc["demo_s1", "method"] == "" and t2.loc["demo_s1", "wall_fit"] == 300
+
+
+def test_synth_groups_only_named_presets():
+    names = ["demo_s2", "demo_s0", "desk_s1", "lightchange_s0", "demo"]
+    assert Bn.synth_groups(names, ["demo", "lightchange"]) == {
+        "demo": ["demo_s0", "demo_s2"], "lightchange": ["lightchange_s0"]}
+    assert Bn.synth_groups(names, []) == {}

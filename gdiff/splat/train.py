@@ -79,6 +79,7 @@ from ..errors import SceneError, TrainingError
 from ..io import atomic_path, read_image, write_csv
 from ..log import progress
 from .deform import DeformConfig
+from .exposure import ExposureCorrection
 from .gaussians import DensifyStats, DensifyThresholds, camera_extent, refine, reset_opacity
 from .losses import l1, psnr, ssim
 from .model import GaussianModel4D, save_model
@@ -129,6 +130,10 @@ class FitOptions:
     reflection_height: int = 16  # rows of each environment map (width 2x)
     lr_reflectivity: float = 5e-2  # per-Gaussian reflection strength (logit)
     lr_environment: float = 3e-2  # environment maps (softplus radiance)
+    # per-image colour correction (auto exposure / white balance; gdiff.splat.exposure)
+    exposure: bool = False  # learn an affine colour transform per training image
+    exposure_weight: float = 1e-2  # pull of each transform towards the identity
+    lr_exposure: float = 1e-2
     # spherical harmonics
     sh_degree: int = 3
     sh_degree_interval: int = 375  # raise the active degree every N iterations (3 at 1125)
@@ -319,6 +324,7 @@ class Trainer:
         self.device = model.device
         self.iteration = 0  # next iteration to run
         self.times = sorted({v.time for v in views})
+        self.exposure = ExposureCorrection(len(views)).to(self.device) if opts.exposure else None
         self.optimizer = self._make_optimizer()
         self.stats = DensifyStats(len(model), self.device, len(self.times))
         self.gen = torch.Generator().manual_seed(opts.seed)
@@ -344,6 +350,9 @@ class Trainer:
         if m.environment is not None:
             groups.append({"params": list(m.environment.parameters()), "lr": o.lr_environment,
                            "name": "environment"})
+        if self.exposure is not None:
+            groups.append({"params": list(self.exposure.parameters()), "lr": o.lr_exposure,
+                           "name": "exposure"})
         return torch.optim.Adam(groups, lr=0.0, eps=1e-15, fused=self.device.type in ("cpu", "cuda"))
 
     def _set_lrs(self, it: int) -> None:
@@ -392,13 +401,14 @@ class Trainer:
             order += [q[k] for q in queues if k < len(q)]
         return torch.tensor(order, dtype=torch.long)
 
-    def _next_view(self) -> TrainView:
+    def _next_view(self) -> tuple[int, TrainView]:
+        """(index into ``views``, view) of the next training image."""
         if self.cursor >= len(self.order):
             self.order = self._epoch_order()
             self.cursor = 0
-        v = self.views[int(self.order[self.cursor])]
+        i = int(self.order[self.cursor])
         self.cursor += 1
-        return v
+        return i, self.views[i]
 
     def _background(self) -> torch.Tensor | None:
         b = self.opts.background
@@ -437,7 +447,7 @@ class Trainer:
             if int(m.active_sh_degree) < min(o.sh_degree, m.sh_degree):
                 m.active_sh_degree += 1
         self._set_lrs(it)
-        view = self._next_view()
+        index, view = self._next_view()
         image, K = view.at_scale(it < o.coarse_iters)
         g = m.at_time(view.time, self.time_gate())
         h, w = image.shape[:2]
@@ -449,12 +459,17 @@ class Trainer:
         if densify_now and means2d.requires_grad:
             means2d.retain_grad()
         pred = colors[0]
+        terms = {}
+        if self.exposure is not None:
+            pred = self.exposure(pred, index)
+            terms["exposure"] = self.exposure.regularizer(index)
         loss_l1 = l1(pred, image)
         loss_ssim = 1.0 - ssim(pred, image)
         loss = loss_l1 + o.ssim_lambda * loss_ssim
-        terms = {}
+        if self.exposure is not None:
+            loss = loss + o.exposure_weight * terms["exposure"]
         if m.deforming:
-            terms = m.deformation.regularizers()
+            terms.update(m.deformation.regularizers())
             loss = loss + (o.plane_tv_weight * terms["plane_tv"]
                            + o.time_smooth_weight * terms["time_smooth"]
                            + o.time_l1_weight * terms["time_l1"])
@@ -491,6 +506,8 @@ class Trainer:
             "iteration": self.iteration,
             "model_config": self.model.config(),
             "model": {k: v.detach().clone() for k, v in self.model.state_dict().items()},
+            "exposure": (None if self.exposure is None else
+                         {k: v.detach().clone() for k, v in self.exposure.state_dict().items()}),
             "optimizer": self.optimizer.state_dict(),
             "densify": {k: v.clone() for k, v in self.stats.state_dict().items()},
             "rng_torch": torch.get_rng_state(),
@@ -504,6 +521,8 @@ class Trainer:
     def load_state_dict(self, st: dict) -> None:
         self.model = _drop_time_terms(GaussianModel4D.from_state(st["model_config"], st["model"]),
                                       self.opts).to(self.device)
+        if self.exposure is not None:
+            self.exposure.load_state_dict(st["exposure"])
         self.optimizer = self._make_optimizer()
         self.optimizer.load_state_dict(st["optimizer"])
         self.stats = DensifyStats(0, self.device)
@@ -541,17 +560,19 @@ def _options_key(opts: FitOptions) -> dict:
 
 
 @torch.no_grad()
-def evaluate_views(model: GaussianModel4D, views: list[TrainView], backend: str = "auto"
-                   ) -> pd.DataFrame:
-    """PSNR / SSIM of every view rendered at its own time (images at the working size)."""
+def evaluate_views(model: GaussianModel4D, views: list[TrainView], backend: str = "auto",
+                   exposure: ExposureCorrection | None = None) -> pd.DataFrame:
+    """PSNR / SSIM of every view rendered at its own time (images at the working size), with
+    view ``i``'s colour correction ``exposure(., i)`` applied when given."""
     rows = []
     cache: dict[float, object] = {}
-    for v in views:
+    for i, v in enumerate(views):
         if v.time not in cache:
             cache[v.time] = model.at_time(v.time)
         h, w = v.image.shape[:2]
         c, _, _ = rasterize_gaussians(cache[v.time], v.viewmat, v.K, w, h, None, "RGB", backend)
-        pred = c[0].clamp(0, 1)
+        pred = c[0] if exposure is None else exposure(c[0], i)
+        pred = pred.clamp(0, 1)
         rows.append({"image": v.camera.image, "set": v.camera.set, "time": v.time,
                      "psnr": float(psnr(pred, v.image)), "ssim": float(ssim(pred, v.image))})
     return pd.DataFrame(rows, columns=["image", "set", "time", "psnr", "ssim"])
@@ -676,7 +697,7 @@ def fit_scene(scene_dir: str | Path, cameras_json: str | Path, points_ply: str |
                  int(gate.sum()), len(gate), opts.time_min_views)
     model.eval()
     seconds = time.time() - t_start
-    quality = evaluate_views(model, views, opts.backend)
+    quality = evaluate_views(model, views, opts.backend, trainer.exposure)
     ref = cams[0]
     meta = {"camera": {k: getattr(ref, k) for k in ("width", "height", "fx", "fy", "cx", "cy")},
             "extent": extent, "iterations": trainer.iteration, "seconds": seconds,
@@ -688,6 +709,11 @@ def fit_scene(scene_dir: str | Path, cameras_json: str | Path, points_ply: str |
             write_gaussians(out / f"gaussians_t{t}.ply", model.at_time(float(t)))
     write_csv(out / "train_log.csv", pd.DataFrame(trainer.rows))
     write_csv(out / "quality.csv", quality)
+    if trainer.exposure is not None:
+        table = trainer.exposure.table([v.camera.image for v in views])
+        write_csv(out / "exposure.csv", table)
+        log.info("colour correction per image: gain %.3f .. %.3f (1 = as the model)",
+                 table["gain"].min(), table["gain"].max())
     if ckpt.is_file() and not opts.keep_checkpoint:
         ckpt.unlink()
     summary = {"iterations": trainer.iteration, "n_gaussians": len(model),

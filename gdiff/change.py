@@ -92,6 +92,9 @@ class CompareOptions:
     observed_min_parallax: ... and two of them from directions at least this many degrees
         apart (seen from one direction only, a surface's depth is not determined: a fitted
         model may put it anywhere along the rays).
+    observed_max_views: per frame only the key views of each time that see most of its
+        surface are used, at most this many (:func:`gdiff.coverage.nearest_views`; keeps the
+        cost per frame independent of the number of photos). 0 uses every key view.
     """
 
     presence_iou: float = 0.3
@@ -110,11 +113,15 @@ class CompareOptions:
     observed_depth_tol: float = 0.05
     observed_min_views: int = 3
     observed_min_parallax: float = 10.0
+    observed_max_views: int = 8
 
     def __post_init__(self):
         if not 0 <= self.observed_min_parallax < 180:
             raise ConfigError("config key 'compare.observed_min_parallax' must lie in [0, 180) "
                               "degrees")
+        if self.observed_max_views < 0:
+            raise ConfigError("config key 'compare.observed_max_views' must be >= 0 (0: every "
+                              "key view)")
         if self.evidence_open < 0 or self.observed_depth_tol <= 0 or self.observed_min_views < 1:
             raise ConfigError("config keys 'compare.evidence_open' (>= 0), "
                               "'compare.observed_depth_tol' (> 0) and "

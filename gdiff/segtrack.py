@@ -179,7 +179,8 @@ def compare_paths(ids: dict[Key, np.ndarray], frames: dict[Key, dict] | None,
                 if f.get("depth") is not None and views[time]:
                     seen[time] = observed(f["depth"], cam, views[time], o.observed_depth_tol,
                                           o.observed_min_views, f.get("alpha"),
-                                          min_parallax=o.observed_min_parallax)
+                                          min_parallax=o.observed_min_parallax,
+                                          max_views=o.observed_max_views)
         stats.append((f"{p}/{i:05d}", pose_stats(
             ids[(p, "t0", i)], ids[(p, "t1", i)], o, f0.get("rgb"), f1.get("rgb"),
             f0.get("depth"), f1.get("depth"), focal=cam.fx if cam is not None else None,

@@ -12,7 +12,7 @@ from gdiff.change import CompareOptions, change_masks, decide, detect_changes_pa
 from gdiff.io import read_ids, read_mask, srgb_to_linear
 from gdiff.segment import SegmentOptions, make_segmenter
 from gdiff.segtrack import compare, compare_paths, segment_and_track, track_paths
-from gdiff.track import TrackOptions
+from gdiff.track import TrackOptions, world_points
 
 H, W = 40, 60
 
@@ -326,6 +326,40 @@ def test_view_count_respects_frustum_and_occlusion():
     wide = observed(plane, cam, views, 0.05, min_views=2, min_parallax=30.0)
     narrow = observed(plane, cam, views, 0.05, min_views=2, min_parallax=45.0)
     assert wide[H // 2, W // 2 + 5] and not narrow.any()
+
+
+def test_nearest_views_bound_the_work_but_not_the_result():
+    """``max_views``: the views that share most of the frame decide first, the pixels they
+    leave unobserved are tested against all views; the mask is the one of all views."""
+    from gdiff.coverage import DepthView, nearest_views, observed
+
+    cam = _plane_camera(0.0)
+    plane = np.full((H, W), 5.0, np.float32)
+    rng = np.random.default_rng(3)
+    views = []
+    for x in (-9.0, -3.0, -1.5, 0.5, 1.0, 2.5, 4.0, 6.0, 30.0):  # 30: sees none of the frame
+        zk = plane.copy()
+        a = int(rng.integers(0, W - 12))
+        zk[:, a:a + 12] = 3.0  # a nearer surface hides part of the plane from this view
+        views.append(DepthView(_plane_camera(x), zk))
+    P = world_points(plane, cam)
+    # ranked on every point (stride 1) they are the three that see most of the frame
+    near = [next(i for i, v in enumerate(views) if v is n)
+            for n in nearest_views(P, views, 0.05, 3, stride=1)]
+    share = [observed(plane, cam, [v], 0.05).mean() for v in views]
+    assert len(near) == 3 and near == sorted(near)  # in their order
+    assert min(share[i] for i in near) >= sorted(share, reverse=True)[2]  # the best three
+    assert share[-1] == 0 and len(nearest_views(P, views, 0.05, 0)) == len(views) - 1
+    for min_views, parallax in ((1, 0.0), (2, 10.0), (3, 20.0)):
+        full = observed(plane, cam, views, 0.05, min_views, min_parallax=parallax)
+        for k in (2, 3, 5):
+            got = observed(plane, cam, views, 0.05, min_views, min_parallax=parallax,
+                           max_views=k)
+            assert (got == full).all(), (min_views, parallax, k)
+    # (the best two views alone leave pixels unobserved that the others see)
+    assert 0 < full.mean() < 1
+    assert observed(plane, cam, nearest_views(P, views, 0.05, 2), 0.05, 3,
+                    min_parallax=20.0).sum() < full.sum()
 
 
 def test_unobserved_region_is_not_a_change():

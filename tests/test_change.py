@@ -3,6 +3,7 @@
 import dataclasses
 import json
 
+import cv2
 import numpy as np
 import pandas as pd
 import pytest
@@ -576,3 +577,35 @@ def test_floor_resegmented_by_moved_glare_is_not_a_change():
     assert st[6]["confirmed"] and st[7]["confirmed"]
     # judged on appearance alone (no depth), the glare segment would pass
     assert pose_stats(ids0, ids1, o, rgb0, rgb1)[3]["confirmed"]
+
+
+def test_pose_stats_per_id_summaries_match_the_whole_image():
+    """IDs are measured in their bounding boxes: areas, sizes, positions and histograms are
+    those of the whole-image masks."""
+    from gdiff.change import _chroma_hist, _normalised_chroma
+    from gdiff.track import world_points
+
+    rng = np.random.default_rng(7)
+    cam = _plane_camera(0.3)
+    ids0 = cv2.resize(rng.integers(0, 9, (5, 6)), (W, H), interpolation=cv2.INTER_NEAREST)
+    ids1 = ids0.copy()
+    ids1[5:20, 10:30] = 9  # added at t1
+    ids1[ids0 == 4] = 0  # removed at t1
+    z0 = rng.uniform(4.0, 6.0, (H, W)).astype(np.float32)
+    z1 = np.where(ids1 == 9, 3.0, z0).astype(np.float32)
+    rgb0 = rng.uniform(0.1, 0.9, (H, W, 3)).astype(np.float32)
+    rgb1 = rgb0.copy()
+    o = CompareOptions(min_area=4)
+    st = pose_stats(ids0, ids1, o, rgb0, rgb1, z0, z1, focal=cam.fx, camera=cam)
+    assert set(st) == set(np.unique(np.r_[ids0.ravel(), ids1.ravel()])) - {0}
+    assert st[9]["candidate"] and st[9]["area0"] == 0 and st[4]["area1"] == 0
+    for t, r in st.items():
+        time = 0 if r["area0"] else 1
+        m = (ids0 if time == 0 else ids1) == t
+        z = z0 if time == 0 else z1
+        rgb = rgb0 if time == 0 else rgb1
+        assert r["area0"] == (ids0 == t).sum() and r["area1"] == (ids1 == t).sum()
+        assert r["size"] == pytest.approx(np.sqrt(m.sum()) * np.median(z[m]) / cam.fx)
+        pts = world_points(z, cam)[m]
+        assert np.allclose(r["pos"], np.median(pts, 0))
+        assert np.array_equal(r["hist"], _chroma_hist(_normalised_chroma(rgb), m))

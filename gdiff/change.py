@@ -92,6 +92,9 @@ class CompareOptions:
     observed_min_parallax: ... and two of them from directions at least this many degrees
         apart (seen from one direction only, a surface's depth is not determined: a fitted
         model may put it anywhere along the rays).
+    observed_max_views: per frame only the key views of each time that see most of its
+        surface are used, at most this many (:func:`gdiff.coverage.nearest_views`; keeps the
+        cost per frame independent of the number of photos). 0 uses every key view.
     """
 
     presence_iou: float = 0.3
@@ -110,11 +113,15 @@ class CompareOptions:
     observed_depth_tol: float = 0.05
     observed_min_views: int = 3
     observed_min_parallax: float = 10.0
+    observed_max_views: int = 8
 
     def __post_init__(self):
         if not 0 <= self.observed_min_parallax < 180:
             raise ConfigError("config key 'compare.observed_min_parallax' must lie in [0, 180) "
                               "degrees")
+        if self.observed_max_views < 0:
+            raise ConfigError("config key 'compare.observed_max_views' must be >= 0 (0: every "
+                              "key view)")
         if self.evidence_open < 0 or self.observed_depth_tol <= 0 or self.observed_min_views < 1:
             raise ConfigError("config keys 'compare.evidence_open' (>= 0), "
                               "'compare.observed_depth_tol' (> 0) and "
@@ -310,27 +317,35 @@ def pose_stats(ids0: np.ndarray, ids1: np.ndarray, o: CompareOptions,
     cont0, cont1 = _continuing(ids0, ids1, o)
     out: dict[int, dict] = {}
     labels = np.union1d(np.unique(ids0), np.unique(ids1))
+    boxes = _boxes(ids0, ids1)
     for t in labels[labels != 0]:
-        m0, m1 = ids0 == t, ids1 == t
-        a0, a1 = int(m0.sum()), int(m1.sum())
+        # each ID is measured inside its bounding box (both times): most IDs at a pose are
+        # not candidates and need only their areas, overlap, coverage and summaries
+        sl = boxes[int(t)]
+        c0, c1 = ids0[sl] == t, ids1[sl] == t
+        a0, a1 = int(c0.sum()), int(c1.sum())
         a0 = a0 if a0 >= o.min_area else 0
         a1 = a1 if a1 >= o.min_area else 0
         if a0 == 0 and a1 == 0:
             continue
+        cand = True
         if a0 and a1:
-            iou = (m0 & m1).sum() / (m0 | m1).sum()
-            cand = iou < o.presence_iou
-            region0, region1 = m0 & ~m1, m1 & ~m0
-        else:
-            cand = True
-            region0, region1 = (m0, np.zeros_like(m0)) if a0 else (np.zeros_like(m1), m1)
+            cand = (c0 & c1).sum() / (c0 | c1).sum() < o.presence_iou
         seen = True
         if known is not None:
-            m = (m0 if a0 else False) | (m1 if a1 else False)
-            seen = bool(known[m].mean() >= o.min_observed)
+            known_box = known[sl]
+            seen = bool(known_box[(c0 if a0 else False) | (c1 if a1 else False)].mean()
+                        >= o.min_observed)
             if not seen:
                 cand = False  # the model is not constrained there at one of the times
-            region0, region1 = region0 & known, region1 & known
+        if cand:  # full-size masks for the evidence tests (they look around the region)
+            m0, m1 = _embed(c0, sl, ids0.shape), _embed(c1, sl, ids1.shape)
+            if a0 and a1:
+                region0, region1 = m0 & ~m1, m1 & ~m0
+            else:
+                region0, region1 = (m0, np.zeros_like(m0)) if a0 else (np.zeros_like(m1), m1)
+            if known is not None:
+                region0, region1 = region0 & known, region1 & known
         evidence, sim, confirmed = float("nan"), float("nan"), bool(cand)
         disoccluded = False
         if cand and (has_depth or has_rgb):
@@ -376,13 +391,19 @@ def pose_stats(ids0: np.ndarray, ids1: np.ndarray, o: CompareOptions,
                 confirmed = evidence >= o.min_evidence
         rec = dict(area0=a0, area1=a1, candidate=bool(cand), evidence=evidence,
                    similarity=sim, confirmed=confirmed, observed=seen)
-        rgb, m, z = (rgb0, m0, depth0) if a0 else (rgb1, m1, depth1)
-        rec["hist"] = _chroma_hist(chroma(0 if a0 else 1), m) if rgb is not None else None
+        time = 0 if a0 else 1
+        rgb, m, z = (rgb0, c0, depth0) if a0 else (rgb1, c1, depth1)
+        if rgb is not None:
+            c, w = chroma(time)
+            rec["hist"] = _chroma_hist((c[sl], w[sl]), m)
+        else:
+            rec["hist"] = None
         size = np.sqrt(m.sum())
         if z is not None and focal:
-            size = size * float(np.median(z[m])) / focal
+            size = size * float(np.median(z[sl][m])) / focal
         rec["size"] = float(size)
-        rec["pos"] = _position(m, points(0 if a0 else 1))
+        P = points(time)
+        rec["pos"] = _position(m, P[sl] if P is not None else None, (sl[0].start, sl[1].start))
         rec["pos_size"] = rec["size"] if len(rec["pos"]) == 3 else float(np.sqrt(m.sum()))
         out[int(t)] = rec
     return out
@@ -462,16 +483,42 @@ def _continuing(ids0: np.ndarray, ids1: np.ndarray, o: CompareOptions
     return stay[a], stay[b]
 
 
-def _position(mask: np.ndarray, points: np.ndarray | None) -> np.ndarray:
+def _position(mask: np.ndarray, points: np.ndarray | None,
+              offset: tuple[int, int] = (0, 0)) -> np.ndarray:
     """Median world point [3] of a mask (``points``: world points [H, W, 3] of its image, or
-    None), else its pixel centroid [2]."""
+    None), else its pixel centroid [2] (x, y; ``offset``: (row, column) of the mask's first
+    pixel in the image, for a mask cut from a larger image)."""
     if points is not None:
         pts = points[mask]
         pts = pts[np.isfinite(pts).all(1)]
         if len(pts):
             return np.median(pts, 0)
     jj, ii = np.nonzero(mask)
-    return np.array([ii.mean() + 0.5, jj.mean() + 0.5])
+    return np.array([ii.mean() + 0.5 + offset[1], jj.mean() + 0.5 + offset[0]])
+
+
+def _boxes(ids0: np.ndarray, ids1: np.ndarray) -> dict[int, tuple[slice, slice]]:
+    """Bounding box (row slice, column slice) of each ID over both ID maps int [H, W]."""
+    from scipy.ndimage import find_objects
+
+    out: dict[int, tuple[slice, slice]] = {}
+    for ids in (ids0, ids1):
+        for k, sl in enumerate(find_objects(np.asarray(ids, np.int64)), start=1):
+            if sl is None:
+                continue
+            if k in out:
+                a = out[k]
+                sl = (slice(min(a[0].start, sl[0].start), max(a[0].stop, sl[0].stop)),
+                      slice(min(a[1].start, sl[1].start), max(a[1].stop, sl[1].stop)))
+            out[k] = sl
+    return out
+
+
+def _embed(crop: np.ndarray, sl: tuple[slice, slice], shape) -> np.ndarray:
+    """bool ``shape`` mask that is ``crop`` inside the box ``sl`` and False elsewhere."""
+    out = np.zeros(shape, bool)
+    out[sl] = crop
+    return out
 
 
 def decide(stats: list[tuple[object, dict[int, dict]]], o: CompareOptions) -> pd.DataFrame:

@@ -102,9 +102,31 @@ def view_count(points: np.ndarray, views: list[DepthView], depth_tol: float,
     return count.reshape(shape)
 
 
+def nearest_views(points: np.ndarray, views: list[DepthView], depth_tol: float, max_views: int,
+                  stride: int = 61) -> list[DepthView]:
+    """The (at most) ``max_views`` of ``views`` that see the most of a frame's surface.
+
+    ``points``: the frame's world points [..., 3] (:func:`gdiff.track.world_points`), tested
+    with :func:`view_count`'s visibility test on every ``stride``-th point (in memory order).
+    Views that see none of them are dropped; ties keep the earlier view. The views keep
+    their order. ``max_views`` <= 0 keeps every view that sees some point.
+    """
+    if not views:
+        return []
+    P = np.asarray(points, np.float64).reshape(-1, 3)[::stride]
+    finite = np.isfinite(P).all(1)
+    hits = np.array([_sees(P, finite, v, depth_tol).sum() for v in views])
+    order = np.argsort(-hits, kind="stable")
+    order = order[hits[order] > 0]
+    if max_views > 0:
+        order = order[:max_views]
+    return [views[i] for i in sorted(order)]
+
+
 def observed(depth: np.ndarray, camera: Camera, views: list[DepthView], depth_tol: float = 0.05,
              min_views: int = 1, alpha: np.ndarray | None = None,
-             alpha_min: float = 0.5, min_parallax: float = 0.0) -> np.ndarray:
+             alpha_min: float = 0.5, min_parallax: float = 0.0,
+             max_views: int = 0) -> np.ndarray:
     """bool [H, W]: pixels of a frame (z-depth [H, W], ``camera``) rendered at time t whose
     surface at least ``min_views`` key views of time t see (see the module docstring), from
     directions at least ``min_parallax`` degrees apart (a surface seen from one direction only
@@ -112,7 +134,11 @@ def observed(depth: np.ndarray, camera: Camera, views: list[DepthView], depth_to
 
     With ``alpha`` (rendered opacity [H, W]) pixels below ``alpha_min`` are not observed
     (nothing was rendered there). With no views every pixel with a surface counts as observed
-    (nothing to check against).
+    (nothing to check against). With ``max_views`` > 0 only the views that see most of the
+    frame decide first (:func:`nearest_views`), and only the pixels they leave unobserved
+    are tested against every view: the same result (a point a subset of the views observes,
+    all views observe; up to the two-sweep parallax estimate, exact for views along an arc)
+    at a cost per frame that grows with the number of views only on those pixels.
     """
     z = np.asarray(depth)
     out = np.isfinite(z) & (z > 0)
@@ -121,7 +147,27 @@ def observed(depth: np.ndarray, camera: Camera, views: list[DepthView], depth_to
     if not views:
         return out
     P = world_points(z, camera)
-    if min_parallax > 0:
-        count, angle = view_count(P, views, depth_tol, parallax=True)
-        return out & (count >= min_views) & (angle >= min_parallax)
-    return out & (view_count(P, views, depth_tol) >= min_views)
+
+    def sees(pts, vs):
+        if min_parallax > 0:
+            count, angle = view_count(pts, vs, depth_tol, parallax=True)
+            return (count >= min_views) & (angle >= min_parallax)
+        return view_count(pts, vs, depth_tol) >= min_views
+
+    todo = np.flatnonzero(out.ravel())
+    P = P.reshape(-1, 3)[todo]
+    res = np.zeros(len(todo), bool)
+    if max_views > 0 and len(views) > max_views:
+        # the views that share most of the frame decide most pixels; only the pixels they
+        # leave unobserved are tested against every view
+        near = nearest_views(P, views, depth_tol, max_views)
+        if near:
+            res = sees(P, near)
+        rest = np.flatnonzero(~res)
+        if len(rest):
+            res[rest] = sees(P[rest], views)
+    else:
+        res = sees(P, views)
+    ok = np.zeros(out.size, bool)
+    ok[todo] = res
+    return ok.reshape(out.shape)

@@ -24,6 +24,8 @@ from __future__ import annotations
 
 import logging
 import os
+from collections import OrderedDict
+from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
@@ -48,36 +50,85 @@ Key = tuple  # (path, "t0" | "t1", frame index)
 # in-memory core
 # ------------------------------------------------------------------------------------------
 
-def track_paths(frames: dict[Key, dict], segmenter: Segmenter,
+class _Chain(Sequence):
+    """:class:`TrackFrame` s of the chain order, loaded and segmented on demand.
+
+    Each frame is segmented once, when first read (the tracker reads frames in chain order);
+    its labels are kept, the images only for the last ``keep`` frames read, so memory does not
+    grow with the number of frames. A frame read again after that (a same-pose partner far
+    back in the chain) is loaded again.
+    """
+
+    def __init__(self, order: list[Key], get, segmenter: Segmenter, keep: int):
+        self.order, self.get, self.segmenter, self.keep = order, get, segmenter, max(2, keep)
+        self.labels: dict[int, np.ndarray] = {}
+        self.cache: OrderedDict[int, TrackFrame] = OrderedDict()
+
+    def __len__(self):
+        return len(self.order)
+
+    def __getitem__(self, k: int) -> TrackFrame:
+        if not 0 <= k < len(self.order):
+            raise IndexError(k)
+        if k in self.cache:
+            self.cache.move_to_end(k)
+            return self.cache[k]
+        key = self.order[k]
+        f = self.get(key)
+        if not f:
+            raise SceneError(f"rendered frame {key} missing (every path needs the same frames "
+                             "at t0 and t1); re-run the render stage")
+        cam = f.get("camera")
+        if k not in self.labels:
+            self.labels[k] = segment_labels(self.segmenter, f["rgb"], f.get("depth"),
+                                            f.get("alpha"), cam.K if cam is not None else None)
+        tf = TrackFrame(labels=self.labels[k], rgb=f["rgb"], depth=f.get("depth"), camera=cam,
+                        pose_key=(key[0], key[2]), name=key, time=TIMES.index(key[1]))
+        self.cache[k] = tf
+        while len(self.cache) > self.keep:
+            self.cache.popitem(last=False)
+        return tf
+
+
+def segment_labels(segmenter: Segmenter, rgb: np.ndarray, depth=None, alpha=None,
+                   K=None) -> np.ndarray:
+    """Segment labels int32 [H, W] of one frame (0 = none; 1.. in the segmenter's order):
+    the segmenter's own ``label`` map when it has one (the same labels without building one
+    full-size mask per instance), else its instances painted in order."""
+    if hasattr(segmenter, "label"):
+        return np.asarray(segmenter.label(rgb, depth, alpha, K), np.int32)
+    return labels_from_instances(segmenter.segment(rgb, depth, alpha, K), rgb.shape[:2])
+
+
+def track_paths(frames, segmenter: Segmenter,
                 track_options: TrackOptions | None = None) -> tuple[dict[Key, np.ndarray], pd.DataFrame]:
     """Segment and track all frames in one ID space.
 
     ``frames[(path, t, i)]`` is a dict with ``rgb`` (float32 [H, W, 3] sRGB), optional
     ``depth`` (float32 [H, W] z-depth), ``alpha`` (float32 [H, W]) and ``camera``
     (:class:`Camera`). Every path must have the same frames at t0 and t1 (same poses).
+    ``frames`` may also be ``(keys, load)``: the frame keys and a callable key -> frame dict,
+    to read frames on demand (then only a few frames are held in memory at a time).
     Returns (ID map int32 [H, W] per key, tracks table with id, first, last, n_frames,
     mean_area; first/last as "path/t/NNNNN").
     """
+    if isinstance(frames, tuple):
+        keys, get = frames
+    else:
+        keys, get = list(frames), (lambda k: frames.get(k, {}))
     n_frames: dict[str, int] = {}
-    for p, t, i in frames:
+    for p, t, i in keys:
         n_frames[p] = max(n_frames.get(p, 0), i + 1)
     paths = sorted(n_frames)
     order = chain_order(n_frames, paths)
-    missing = [k for k in order if k not in frames]
+    have = set(keys)
+    missing = [k for k in order if k not in have]
     if missing:
         raise SceneError(f"rendered frames missing for {missing[:3]} (every path needs the same "
                          "frames at t0 and t1); re-run the render stage")
-    tframes = []
-    for key in progress(order, desc="segment"):
-        f = frames[key]
-        cam = f.get("camera")
-        inst = segmenter.segment(f["rgb"], f.get("depth"), f.get("alpha"),
-                                 cam.K if cam is not None else None)
-        tframes.append(TrackFrame(labels=labels_from_instances(inst, f["rgb"].shape[:2]),
-                                  rgb=f["rgb"], depth=f.get("depth"), camera=cam,
-                                  pose_key=(key[0], key[2]), name=key,
-                                  time=TIMES.index(key[1])))
-    res = track_sequence(tframes, track_options)
+    o = track_options or TrackOptions()
+    chain = _Chain(order, get, segmenter, keep=o.max_missed + 3)
+    res = track_sequence(chain, o)
     ids = {key: m for key, m in zip(order, res.ids)}
     tracks = res.tracks.copy()
     fmt = lambda k: f"{order[k][0]}/{order[k][1]}/{order[k][2]:05d}"  # noqa: E731
@@ -128,7 +179,8 @@ def compare_paths(ids: dict[Key, np.ndarray], frames: dict[Key, dict] | None,
                 if f.get("depth") is not None and views[time]:
                     seen[time] = observed(f["depth"], cam, views[time], o.observed_depth_tol,
                                           o.observed_min_views, f.get("alpha"),
-                                          min_parallax=o.observed_min_parallax)
+                                          min_parallax=o.observed_min_parallax,
+                                          max_views=o.observed_max_views)
         stats.append((f"{p}/{i:05d}", pose_stats(
             ids[(p, "t0", i)], ids[(p, "t1", i)], o, f0.get("rgb"), f1.get("rgb"),
             f0.get("depth"), f1.get("depth"), focal=cam.fx if cam is not None else None,
@@ -240,16 +292,19 @@ def segment_and_track(render_dir, poses_json, out_dir, options: SegmentOptions |
     cams, _ = _poses(poses_json)
     files = _render_files(render_dir, cams)
     seg = make_segmenter(options or SegmentOptions())
-    frames = {}
-    for key, f in progress(list(files.items()), desc="read frames"):
-        rgb, alpha, depth = _read_exr(f)
-        frames[key] = dict(rgb=rgb, alpha=alpha, depth=depth, camera=cams[key[0]][key[2]])
-    ids, tracks = track_paths(frames, seg, track_options)
+
+    def load(key):
+        rgb, alpha, depth = _read_exr(files[key])
+        return dict(rgb=rgb, alpha=alpha, depth=depth, camera=cams[key[0]][key[2]])
+
+    # frames are read on demand (all of them at once would not fit in memory on long paths)
+    ids, tracks = track_paths((list(files), load), seg, track_options)
     index = {"render_dir": os.path.relpath(render_dir, out_dir), "frames": []}
     for (p, t, i), m in progress(sorted(ids.items()), desc="write IDs"):
         rel = f"{p}/{t}/{i:05d}.png"
         write_ids(out_dir / rel, m)
-        write_image(out_dir / "overlay" / p / t / f"{i:05d}.jpg", _overlay(frames[(p, t, i)]["rgb"], m))
+        rgb = _read_exr(files[(p, t, i)])[0]
+        write_image(out_dir / "overlay" / p / t / f"{i:05d}.jpg", _overlay(rgb, m))
         index["frames"].append({"path": p, "t": t, "frame": i, "ids": rel,
                                 "render": os.path.relpath(files[(p, t, i)], out_dir)})
     write_csv(out_dir / "tracks.csv", tracks)

@@ -269,8 +269,8 @@ def _iou_table(pred: np.ndarray, labels: np.ndarray) -> tuple[np.ndarray, np.nda
     """
     tids, pinv = np.unique(pred.ravel(), return_inverse=True)
     sids, sinv = np.unique(labels.ravel(), return_inverse=True)
-    inter = np.zeros((len(tids), len(sids)), np.int64)
-    np.add.at(inter, (pinv, sinv), 1)
+    inter = np.bincount(pinv.ravel() * len(sids) + sinv.ravel(),
+                        minlength=len(tids) * len(sids)).reshape(len(tids), len(sids))
     pa = inter.sum(1)
     sa = inter.sum(0)
     iou = inter / np.maximum(pa[:, None] + sa[None, :] - inter, 1)
@@ -296,6 +296,7 @@ def track_sequence(frames: list[TrackFrame], options: TrackOptions | None = None
     areas: dict[int, int] = {}
     done_by_pose: dict[Hashable, int] = {}
     grads: dict[int, Texture] = {}
+    positions: dict[int, dict[float, list]] = {}  # track -> time -> [(median point, size)]
     n_broken = 0
 
     def texture(k: int) -> Texture:
@@ -330,20 +331,18 @@ def track_sequence(frames: list[TrackFrame], options: TrackOptions | None = None
                 o.link_min_similarity > -1 and src.rgb is not None and fr.rgb is not None
             pred = propagate(ids_src, src, fr, o)
             tids, sids, iou = _iou_table(pred, labels)
-            for a, t in enumerate(tids):
-                for b, s in enumerate(sids):
-                    if iou[a, b] <= 0:
+            for a, b in zip(*np.nonzero(iou > 0)):
+                t, s = tids[a], sids[b]
+                if check and iou[a, b] >= o.iou_gate:
+                    sim = region_similarity(texture(f), texture(k),
+                                            (ids_src == t) & (labels == s), o.min_texture)
+                    if sim < o.link_min_similarity:  # NaN (untextured) keeps the link
+                        n_broken += 1
+                        log.debug("frame %s: link of track %d to segment %d broken "
+                                  "(texture similarity %.2f)", fr.name, t, s, sim)
                         continue
-                    if check and iou[a, b] >= o.iou_gate:
-                        sim = region_similarity(texture(f), texture(k),
-                                                (ids_src == t) & (labels == s), o.min_texture)
-                        if sim < o.link_min_similarity:  # NaN (untextured) keeps the link
-                            n_broken += 1
-                            log.debug("frame %s: link of track %d to segment %d broken "
-                                      "(texture similarity %.2f)", fr.name, t, s, sim)
-                            continue
-                    key = (int(t), int(s))
-                    best[key] = max(best.get(key, 0.0), float(iou[a, b]))
+                key = (int(t), int(s))
+                best[key] = max(best.get(key, 0.0), float(iou[a, b]))
         seg_ids = [int(s) for s in np.unique(labels) if s != 0]
         assign: dict[int, int] = {}
         if best and seg_ids:
@@ -372,7 +371,13 @@ def track_sequence(frames: list[TrackFrame], options: TrackOptions | None = None
             areas[t] = areas.get(t, 0) + int((labels == s).sum())
         if fr.pose_key is not None:
             done_by_pose[fr.pose_key] = k
-        grads.pop(k - 2 * (o.max_missed + 2), None)  # keep memory bounded on long chains
+        # keep memory bounded on long chains: textures of frames out of the propagation
+        # window (also those of same-pose partners far back) are dropped
+        for j in [j for j in grads if j <= k - 2 * (o.max_missed + 2)]:
+            del grads[j]
+        if o.merge_3d and fr.depth is not None and fr.camera is not None and fr.time is not None:
+            for t, rec in frame_positions(ids, fr).items():
+                positions.setdefault(t, {}).setdefault(float(fr.time), []).append(rec)
     n = len(frames)
     removed = set()
     if o.vote_window > 0:
@@ -386,7 +391,11 @@ def track_sequence(frames: list[TrackFrame], options: TrackOptions | None = None
             out = [np.where(np.isin(m, rm), 0, m).astype(np.int32) for m in out]
     merged = {}
     if o.merge_3d:
-        merged = merge_by_position(out, frames, o.merge_dist_frac)
+        # positions were gathered frame by frame during tracking (frames need not stay in
+        # memory); voting only removed whole tracks, the others kept their pixels
+        pos = _summarise_positions({t: v for t, v in positions.items() if t not in removed})
+        merged = merge_positions(pos, {t: set(ks) for t, ks in seen_at.items()
+                                       if t not in removed}, o.merge_dist_frac)
         if merged:
             lut = np.arange(max(next_id, 1), dtype=np.int32)
             for a, b in merged.items():
@@ -418,6 +427,41 @@ def world_points(depth: np.ndarray, camera: Camera) -> np.ndarray:
     return P @ camera.c2w[:3, :3].T + camera.c2w[:3, 3]
 
 
+def frame_positions(ids: np.ndarray, frame: TrackFrame) -> dict[int, tuple[np.ndarray, float]]:
+    """Per track in one frame's ID map ``ids`` int [H, W]: (median world point [3], metric
+    size), for tracks with at least 4 finite points. The size is sqrt(area) x median depth /
+    focal length (scene units). ``frame`` needs depth and camera."""
+    m = np.asarray(ids).ravel()
+    order = np.argsort(m, kind="stable")
+    tids, starts, counts = np.unique(m[order], return_index=True, return_counts=True)
+    if not (tids != 0).any():
+        return {}
+    P = world_points(frame.depth, frame.camera).reshape(-1, 3)
+    z = np.asarray(frame.depth).ravel()
+    out = {}
+    for t, a, c in zip(tids, starts, counts):
+        if t == 0:
+            continue
+        idx = order[a:a + c]
+        pts = P[idx]
+        pts = pts[np.isfinite(pts).all(1)]
+        if len(pts) < 4:
+            continue
+        size = np.sqrt(c) * np.median(z[idx]) / frame.camera.fx
+        out[int(t)] = (np.median(pts, 0), size)
+    return out
+
+
+def _summarise_positions(acc: dict[int, dict[float, list]]
+                         ) -> dict[int, dict[float, tuple[np.ndarray, float]]]:
+    """Per track and time: medians over frames of the :func:`frame_positions` records."""
+    out = {}
+    for t, per_time in acc.items():
+        out[t] = {tm: (np.median(np.stack([p for p, _ in v]), 0), float(np.median([s for _, s in v])))
+                  for tm, v in per_time.items()}
+    return out
+
+
 def track_positions(ids: list[np.ndarray], frames: list[TrackFrame]
                     ) -> dict[int, dict[float, tuple[np.ndarray, float]]]:
     """Per track and time: (median world point [3], metric size) over all its observations.
@@ -429,26 +473,9 @@ def track_positions(ids: list[np.ndarray], frames: list[TrackFrame]
     for m, fr in zip(ids, frames):
         if fr.depth is None or fr.camera is None or fr.time is None:
             continue
-        P = None
-        tids, counts = np.unique(m, return_counts=True)
-        for t, c in zip(tids, counts):
-            if t == 0:
-                continue
-            if P is None:
-                P = world_points(fr.depth, fr.camera)
-            pts = P[m == t]
-            pts = pts[np.isfinite(pts).all(1)]
-            if len(pts) < 4:
-                continue
-            zc = np.median(np.asarray(fr.depth)[m == t])
-            size = np.sqrt(c) * zc / fr.camera.fx
-            acc.setdefault(int(t), {}).setdefault(float(fr.time), []).append(
-                (np.median(pts, 0), size))
-    out = {}
-    for t, per_time in acc.items():
-        out[t] = {tm: (np.median(np.stack([p for p, _ in v]), 0), float(np.median([s for _, s in v])))
-                  for tm, v in per_time.items()}
-    return out
+        for t, rec in frame_positions(m, fr).items():
+            acc.setdefault(t, {}).setdefault(float(fr.time), []).append(rec)
+    return _summarise_positions(acc)
 
 
 def link_groups(n: int, links: list[tuple[int, int]]) -> np.ndarray:
@@ -473,14 +500,20 @@ def merge_by_position(ids: list[np.ndarray], frames: list[TrackFrame],
 
     Returns {track id: id it merges into} (the smaller ID of a group is kept).
     """
-    pos = track_positions(ids, frames)
-    if len(pos) < 2:
-        return {}
     frames_of: dict[int, set[int]] = {}
     for k, m in enumerate(ids):
         for t in np.unique(m):
             if t:
                 frames_of.setdefault(int(t), set()).add(k)
+    return merge_positions(track_positions(ids, frames), frames_of, dist_frac)
+
+
+def merge_positions(pos: dict[int, dict[float, tuple[np.ndarray, float]]],
+                    frames_of: dict[int, set[int]], dist_frac: float) -> dict[int, int]:
+    """:func:`merge_by_position` from the tracks' positions (:func:`track_positions`) and the
+    frames each track is seen in (``frames_of``: track id -> set of frame indices)."""
+    if len(pos) < 2:
+        return {}
     tr = sorted(pos)
     links = []
     for i, a in enumerate(tr):

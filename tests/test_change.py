@@ -3,6 +3,7 @@
 import dataclasses
 import json
 
+import cv2
 import numpy as np
 import pandas as pd
 import pytest
@@ -12,7 +13,7 @@ from gdiff.change import CompareOptions, change_masks, decide, detect_changes_pa
 from gdiff.io import read_ids, read_mask, srgb_to_linear
 from gdiff.segment import SegmentOptions, make_segmenter
 from gdiff.segtrack import compare, compare_paths, segment_and_track, track_paths
-from gdiff.track import TrackOptions
+from gdiff.track import TrackOptions, world_points
 
 H, W = 40, 60
 
@@ -328,6 +329,40 @@ def test_view_count_respects_frustum_and_occlusion():
     assert wide[H // 2, W // 2 + 5] and not narrow.any()
 
 
+def test_nearest_views_bound_the_work_but_not_the_result():
+    """``max_views``: the views that share most of the frame decide first, the pixels they
+    leave unobserved are tested against all views; the mask is the one of all views."""
+    from gdiff.coverage import DepthView, nearest_views, observed
+
+    cam = _plane_camera(0.0)
+    plane = np.full((H, W), 5.0, np.float32)
+    rng = np.random.default_rng(3)
+    views = []
+    for x in (-9.0, -3.0, -1.5, 0.5, 1.0, 2.5, 4.0, 6.0, 30.0):  # 30: sees none of the frame
+        zk = plane.copy()
+        a = int(rng.integers(0, W - 12))
+        zk[:, a:a + 12] = 3.0  # a nearer surface hides part of the plane from this view
+        views.append(DepthView(_plane_camera(x), zk))
+    P = world_points(plane, cam)
+    # ranked on every point (stride 1) they are the three that see most of the frame
+    near = [next(i for i, v in enumerate(views) if v is n)
+            for n in nearest_views(P, views, 0.05, 3, stride=1)]
+    share = [observed(plane, cam, [v], 0.05).mean() for v in views]
+    assert len(near) == 3 and near == sorted(near)  # in their order
+    assert min(share[i] for i in near) >= sorted(share, reverse=True)[2]  # the best three
+    assert share[-1] == 0 and len(nearest_views(P, views, 0.05, 0)) == len(views) - 1
+    for min_views, parallax in ((1, 0.0), (2, 10.0), (3, 20.0)):
+        full = observed(plane, cam, views, 0.05, min_views, min_parallax=parallax)
+        for k in (2, 3, 5):
+            got = observed(plane, cam, views, 0.05, min_views, min_parallax=parallax,
+                           max_views=k)
+            assert (got == full).all(), (min_views, parallax, k)
+    # (the best two views alone leave pixels unobserved that the others see)
+    assert 0 < full.mean() < 1
+    assert observed(plane, cam, nearest_views(P, views, 0.05, 2), 0.05, 3,
+                    min_parallax=20.0).sum() < full.sum()
+
+
 def test_unobserved_region_is_not_a_change():
     """Path p1 is rendered at t1 where no after photo looked (its left part): the model renders
     something there (a surface nearer than before) that no photo supports. Only the object
@@ -542,3 +577,35 @@ def test_floor_resegmented_by_moved_glare_is_not_a_change():
     assert st[6]["confirmed"] and st[7]["confirmed"]
     # judged on appearance alone (no depth), the glare segment would pass
     assert pose_stats(ids0, ids1, o, rgb0, rgb1)[3]["confirmed"]
+
+
+def test_pose_stats_per_id_summaries_match_the_whole_image():
+    """IDs are measured in their bounding boxes: areas, sizes, positions and histograms are
+    those of the whole-image masks."""
+    from gdiff.change import _chroma_hist, _normalised_chroma
+    from gdiff.track import world_points
+
+    rng = np.random.default_rng(7)
+    cam = _plane_camera(0.3)
+    ids0 = cv2.resize(rng.integers(0, 9, (5, 6)), (W, H), interpolation=cv2.INTER_NEAREST)
+    ids1 = ids0.copy()
+    ids1[5:20, 10:30] = 9  # added at t1
+    ids1[ids0 == 4] = 0  # removed at t1
+    z0 = rng.uniform(4.0, 6.0, (H, W)).astype(np.float32)
+    z1 = np.where(ids1 == 9, 3.0, z0).astype(np.float32)
+    rgb0 = rng.uniform(0.1, 0.9, (H, W, 3)).astype(np.float32)
+    rgb1 = rgb0.copy()
+    o = CompareOptions(min_area=4)
+    st = pose_stats(ids0, ids1, o, rgb0, rgb1, z0, z1, focal=cam.fx, camera=cam)
+    assert set(st) == set(np.unique(np.r_[ids0.ravel(), ids1.ravel()])) - {0}
+    assert st[9]["candidate"] and st[9]["area0"] == 0 and st[4]["area1"] == 0
+    for t, r in st.items():
+        time = 0 if r["area0"] else 1
+        m = (ids0 if time == 0 else ids1) == t
+        z = z0 if time == 0 else z1
+        rgb = rgb0 if time == 0 else rgb1
+        assert r["area0"] == (ids0 == t).sum() and r["area1"] == (ids1 == t).sum()
+        assert r["size"] == pytest.approx(np.sqrt(m.sum()) * np.median(z[m]) / cam.fx)
+        pts = world_points(z, cam)[m]
+        assert np.allclose(r["pos"], np.median(pts, 0))
+        assert np.array_equal(r["hist"], _chroma_hist(_normalised_chroma(rgb), m))

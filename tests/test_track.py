@@ -4,6 +4,7 @@ import dataclasses
 
 import cv2
 import numpy as np
+import pandas as pd
 import pytest
 
 from gdiff import synth
@@ -186,3 +187,25 @@ def test_tracks_merge_by_3d_position():
     ids2[5] = seq[3][1] * 9
     ids2[6] = seq[4][1] * 9
     assert merge_by_position(ids2, f2, 0.5) == {}
+
+
+def test_frames_read_on_demand_give_the_same_tracks(tracked):
+    """``track_paths`` with a loader holds a few frames at a time, reads each at most twice
+    (again only as the same-pose partner of the other time) and tracks as with all in memory."""
+    _, frames, _, ids, tracks = tracked
+    reads = []
+
+    def load(key):
+        reads.append(key)
+        return frames[key]
+
+    lazy_ids, lazy_tracks = track_paths((list(frames), load), make_segmenter(SegmentOptions()),
+                                        TrackOptions(max_missed=1))
+    full_ids, full_tracks = track_paths(frames, make_segmenter(SegmentOptions()),
+                                        TrackOptions(max_missed=1))
+    assert set(lazy_ids) == set(frames)
+    assert all((lazy_ids[k] == full_ids[k]).all() for k in frames)
+    pd.testing.assert_frame_equal(lazy_tracks, full_tracks)
+    counts = pd.Series([str(k) for k in reads]).value_counts()
+    assert counts.max() <= 2 and len(counts) == len(frames)
+    assert len(reads) > len(frames)  # the cache is bounded: partners far back are read again

@@ -121,18 +121,19 @@ def depth_normals(depth: np.ndarray, K: np.ndarray, sigma: float) -> np.ndarray:
 
 
 def crease_edges(depth: np.ndarray, valid: np.ndarray, K: np.ndarray, max_deg: float,
-                 sigma: float, step: int = 2, concave_only: bool = True) -> np.ndarray:
+                 sigma: float, step: int = 2, concave_only: bool = True,
+                 surface: tuple[np.ndarray, np.ndarray] | None = None) -> np.ndarray:
     """Crease edges: the normals ``step`` pixels apart on either side differ by > ``max_deg``.
 
     With ``concave_only`` only concave creases count (where an object meets its support or
     another object); convex creases (the edges of a box) lie inside one object. Convexity test
     of two surface points x1, x2 with normals n1, n2: convex when (n1 - n2) . (x1 - x2) > 0.
+    ``surface``: the (points, normals) :func:`crease_surface` returns for these arguments, to
+    reuse them across calls.
     """
-    z = _fill_invalid(depth.astype(np.float32), valid)
-    P = depth_points(z, K, sigma)
-    n = point_normals(P)
+    P, n = surface if surface is not None else crease_surface(depth, valid, K, sigma)
     cos_max = np.cos(np.deg2rad(max_deg))
-    out = np.zeros(z.shape, dtype=bool)
+    out = np.zeros(depth.shape, dtype=bool)
     for dy, dx in _shift_pairs(step):
         n1, n2 = _shifted(n, dy, dx), _shifted(n, -dy, -dx)
         e = (n1 * n2).sum(-1) < cos_max
@@ -141,6 +142,15 @@ def crease_edges(depth: np.ndarray, valid: np.ndarray, K: np.ndarray, max_deg: f
             e &= ((n1 - n2) * (x1 - x2)).sum(-1) <= 0
         out |= e
     return out
+
+
+def crease_surface(depth: np.ndarray, valid: np.ndarray, K: np.ndarray,
+                   sigma: float) -> tuple[np.ndarray, np.ndarray]:
+    """Camera-frame points [H, W, 3] and unit normals [H, W, 3] of a z-depth map [H, W]
+    (invalid pixels filled from the nearest valid one), as :func:`crease_edges` uses them."""
+    z = _fill_invalid(depth.astype(np.float32), valid)
+    P = depth_points(z, K, sigma)
+    return P, point_normals(P)
 
 
 def chromaticity(rgb: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -257,11 +267,13 @@ class GeometricSegmenter:
                     Ks[0] *= w / W
                     Ks[1] *= h / H
                 edges |= depth_edges(z_s, zv_s, o.depth_edge_rel, o.smooth_sigma)
-                edges |= crease_edges(z_s, zv_s, Ks, o.normal_edge_deg, o.smooth_sigma)
+                surf = crease_surface(z_s, zv_s, Ks, o.smooth_sigma)
+                edges |= crease_edges(z_s, zv_s, Ks, o.normal_edge_deg, o.smooth_sigma,
+                                      surface=surf)
                 # where the surface bends (either way) shading changes the colour, and under a
                 # coloured light also the chromaticity: no colour edges there
                 shading = crease_edges(z_s, zv_s, Ks, o.normal_edge_deg / 2, o.smooth_sigma,
-                                       concave_only=False)
+                                       concave_only=False, surface=surf)
                 no_color = cv2.dilate(shading.astype(np.uint8), np.ones((3, 3), np.uint8)) > 0
                 feat = np.log(np.maximum(_fill_invalid(z_s, zv_s), 1e-6))[..., None]
         if o.color_edge > 0:

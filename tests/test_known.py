@@ -1,6 +1,6 @@
 """Known poses on real-capture-like input: frustum seeding when triangulation leaves too few
 points, lens distortion (given in cameras.json or estimated by COLMAP) undistorted once in the
-poses stage."""
+poses stage, and the ROS tf-yaml importer."""
 
 from __future__ import annotations
 
@@ -10,11 +10,14 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
+import yaml
+from scipy.spatial.transform import Rotation
 
 from gdiff.align import pose_errors
 from gdiff.cameras import Camera, cameras_from_json, cameras_to_json, image_root, load_cameras
 from gdiff.errors import SceneError
 from gdiff.evaluate import find_eval_views
+from gdiff.importers import detect_format, import_scene
 from gdiff.io import read_image, write_image
 from gdiff.sfm import PosesOptions, read_cameras_file, run_poses
 from gdiff.sfm.seed import depth_range
@@ -237,3 +240,77 @@ def test_colmap_estimates_and_removes_distortion(distorted_tiny, gt_tiny, synth_
     err = pose_errors(cams, [gt[c.image] for c in cams])
     # tiny is 128x96: the same bounds as the pinhole registration test in test_sfm.py
     assert err["rot_err_deg"].median() < 2.0 and err["center_err_frac"].median() < 0.05, err
+
+
+# ------------------------------------------------------------------ ROS tf-yaml importer
+
+
+def _tf_source(root: Path) -> dict[str, np.ndarray]:
+    """A made-up robot capture: 2 + 2 photos, provenance names, two tf YAML files, and a
+    ROS CameraInfo. Returns the true c2w per original frame name."""
+    rng = np.random.default_rng(3)
+    truth, entries = {}, {"scene1": [], "scene2": []}
+    views = []
+    for k, (st, scene) in enumerate([("before", "scene1"), ("before", "scene1"),
+                                     ("after", "scene2"), ("after", "scene2")]):
+        name = f"v{k % 2:02d}.png"
+        frame = f"rgb_image_raw-{1000 + k}.png"
+        write_image(root / st / name, rng.random((48, 64, 3), dtype=np.float32))
+        q = [float(v) for v in Rotation.random(random_state=k).as_quat()]  # x, y, z, w
+        t = [float(v) for v in rng.normal(size=3)]
+        c2w = np.eye(4)
+        c2w[:3, :3] = Rotation.from_quat(q).as_matrix()
+        c2w[:3, 3] = t
+        truth[f"{st}/{name}"] = c2w
+        sign = -1.0 if k == 1 else 1.0  # q and -q are the same rotation
+        entries[scene].append({
+            "file_name": frame, "id": k, "origin_frame": "/map",
+            "target_frame": "/head_rgbd_sensor_rgb_frame", "timestamp": 1.0 + k,
+            "rotation": {"w": sign * q[3], "x": sign * q[0], "y": sign * q[1],
+                         "z": sign * q[2]},
+            "translation": {"x": t[0], "y": t[1], "z": t[2]}})
+        views.append({"set": st, "name": name, "src_path": f"data/{scene}/{frame}"})
+    robot = root / "robot"
+    robot.mkdir()
+    for scene, e in entries.items():
+        (robot / f"{scene}_transformations.yaml").write_text(yaml.safe_dump(e))
+    (robot / "provenance.json").write_text(json.dumps({"views": views}))
+    (robot / "camera_info.json").write_text(json.dumps({
+        "height": 48, "width": 64, "distortion_model": "plumb_bob",
+        "D": [0.06, -0.2, -0.0001, -0.001, 0.15],
+        "K": [50.0, 0, 31.0, 0, 51.0, 23.5, 0, 0, 1]}))
+    return truth
+
+
+def test_tf_yaml_import(tmp_path):
+    src = tmp_path / "robot_capture"
+    truth = _tf_source(src)
+    assert detect_format(src) == "tf-yaml"
+    out = import_scene("tf-yaml", src, tmp_path / "scene")
+    cams = {c.image: c for c in read_cameras_file(out / "cameras.json")}
+    assert sorted(cams) == sorted(truth)
+    for name, c in cams.items():
+        assert np.allclose(c.c2w, truth[name], atol=1e-9), name
+        assert c.set == name.split("/")[0]
+        # ROS pixel centres are integers, gdiff's at +0.5
+        assert (c.fx, c.fy, c.cx, c.cy) == (50.0, 51.0, 31.5, 24.0)
+        assert c.dist == (0.06, -0.2, -0.0001, -0.001, 0.15)
+    meta = json.loads((out / "import.json").read_text())
+    assert meta["known_poses"] and meta["counts"] == {"before": 2, "after": 2}
+
+
+def test_tf_yaml_import_errors(tmp_path):
+    src = tmp_path / "robot_capture"
+    _tf_source(src)
+    frames = yaml.safe_load((src / "robot" / "scene2_transformations.yaml").read_text())
+    (src / "robot" / "scene2_transformations.yaml").write_text(yaml.safe_dump(frames[:1]))
+    with pytest.raises(SceneError, match="no pose in .* for 1 photo.*after/v01.png"):
+        import_scene("tf-yaml", src, tmp_path / "a")
+    assert not (tmp_path / "a").exists()
+    del frames[0]["rotation"]
+    (src / "robot" / "scene2_transformations.yaml").write_text(yaml.safe_dump(frames))
+    with pytest.raises(SceneError, match="scene2_transformations.yaml: entry 0: needs"):
+        import_scene("tf-yaml", src, tmp_path / "b")
+    (src / "robot" / "camera_info.json").unlink()
+    with pytest.raises(SceneError, match="camera_info"):
+        import_scene("tf-yaml", src, tmp_path / "c")

@@ -17,6 +17,13 @@ Conventions
                  "c2w": [[4x4]]}, ...]}
 
 A frame may carry its own ``fx, fy, cx, cy, width, height`` when images differ in intrinsics.
+
+Lens distortion (input ``cameras.json`` only): ``"distortion": [k1, k2, p1, p2(, k3)]`` (OpenCV
+plumb-bob / Brown-Conrady coefficients, as in ROS CameraInfo ``D``; or a dict with those keys),
+shared at the top level or per frame. The poses stage undistorts such images once and writes
+pinhole cameras (no ``distortion``) plus ``"image_dir"``: the folder, relative to the
+``cameras.json``, that holds the undistorted images under the same relative paths (see
+:func:`image_root`); every later stage reads the photos from there.
 """
 
 from __future__ import annotations
@@ -51,9 +58,15 @@ class Camera:
     image: str | None = None  # path relative to the scene folder, if the camera has a photo
     set: str | None = None  # before | after | eval_before | eval_after
     time: float | None = None  # 0 (before) or 1 (after)
+    # OpenCV distortion coefficients (k1, k2, p1, p2[, k3]) of the photo, or None (pinhole).
+    dist: tuple[float, ...] | None = None
 
     def __post_init__(self):
         self.c2w = np.asarray(self.c2w, dtype=np.float64).reshape(4, 4)
+        if self.dist is not None:
+            self.dist = tuple(float(v) for v in self.dist)
+            if not any(self.dist):
+                self.dist = None
 
     @property
     def K(self) -> np.ndarray:
@@ -124,9 +137,49 @@ def cameras_to_json(cameras: Iterable[Camera]) -> dict:
         for k in shared:
             if getattr(c, k) != out[k]:
                 fr[k] = getattr(c, k)
+        if c.dist is not None and c.dist != ref.dist:
+            fr["distortion"] = list(c.dist)
         frames.append(fr)
+    if ref.dist is not None:
+        out["distortion"] = list(ref.dist)
     out["frames"] = frames
     return out
+
+
+_DIST_KEYS = ("k1", "k2", "p1", "p2", "k3")
+
+
+def parse_distortion(value, source: str, where: str) -> tuple[float, ...] | None:
+    """OpenCV distortion coefficients from a list ``[k1, k2, p1, p2(, k3, ...)]`` or a dict
+    with keys ``k1 k2 p1 p2 [k3]`` (missing keys = 0); None for no / all-zero distortion."""
+    if value is None:
+        return None
+    if isinstance(value, dict):
+        unknown = sorted(set(value) - set(_DIST_KEYS))
+        if unknown:
+            raise SceneError(f"{source}: {where}: unknown distortion key(s) {unknown}; give "
+                             "k1, k2, p1, p2 and optionally k3 (OpenCV plumb-bob)")
+        value = [value.get(k, 0.0) for k in _DIST_KEYS]
+    try:
+        d = [float(v) for v in value]
+    except (TypeError, ValueError):
+        raise SceneError(f"{source}: {where}: 'distortion' must be a list of numbers "
+                         "[k1, k2, p1, p2(, k3)] (OpenCV plumb-bob)") from None
+    if len(d) not in (4, 5, 8) or not np.isfinite(d).all():
+        raise SceneError(f"{source}: {where}: 'distortion' has {len(d)} value(s); give 4, 5 "
+                         "or 8 finite OpenCV coefficients (k1, k2, p1, p2[, k3[, k4, k5, k6]])")
+    return tuple(d) if any(d) else None
+
+
+def image_root(scene_dir: str | Path | None, cameras_json: str | Path | None) -> Path | None:
+    """The folder holding the images named in ``cameras_json`` (or ``sequence/poses.json``):
+    its ``image_dir`` (relative to the file; the poses stage's undistorted photos) when set,
+    else ``scene_dir``."""
+    if cameras_json is not None:
+        data = read_json(cameras_json)
+        if data.get("image_dir"):
+            return Path(cameras_json).parent / data["image_dir"]
+    return None if scene_dir is None else Path(scene_dir)
 
 
 def cameras_from_json(data: dict, source: str = "cameras.json") -> list[Camera]:
@@ -152,10 +205,12 @@ def cameras_from_json(data: dict, source: str = "cameras.json") -> list[Camera]:
                              "4x4 camera-to-world matrix")
         st = fr.get("set")
         t = fr.get("time", SET_TIME.get(st) if st else None)
+        dist = parse_distortion(fr.get("distortion", data.get("distortion")), source,
+                                f"frame {i} ({fr.get('image')})")
         cams.append(Camera(width=int(kw["width"]), height=int(kw["height"]),
                            fx=float(kw["fx"]), fy=float(kw["fy"]), cx=float(kw["cx"]),
                            cy=float(kw["cy"]), c2w=c2w, image=fr.get("image") or fr.get("file"),
-                           set=st, time=t))
+                           set=st, time=t, dist=dist))
     return cams
 
 
@@ -164,9 +219,15 @@ def load_cameras(path: str | Path) -> list[Camera]:
     return cameras_from_json(read_json(path), source=str(path))
 
 
-def save_cameras(path: str | Path, cameras: Iterable[Camera]) -> None:
-    """Write a gdiff ``cameras.json`` atomically."""
-    write_json(path, cameras_to_json(cameras))
+def save_cameras(path: str | Path, cameras: Iterable[Camera], image_dir: str | None = None
+                 ) -> None:
+    """Write a gdiff ``cameras.json`` atomically; ``image_dir`` (relative to ``path``) names
+    the folder of the (undistorted) images when they are not the scene's own."""
+    data = cameras_to_json(cameras)
+    if image_dir:
+        data = {**{k: v for k, v in data.items() if k != "frames"}, "image_dir": image_dir,
+                "frames": data["frames"]}
+    write_json(path, data)
 
 
 def cameras_from_transforms(data: dict, source: str = "transforms.json") -> list[Camera]:
@@ -202,8 +263,11 @@ def cameras_from_transforms(data: dict, source: str = "transforms.json") -> list
             T = np.vstack([T, [0, 0, 0, 1]])
         if T.shape != (4, 4):
             raise SceneError(f"{source}: frame {i}: 'transform_matrix' must be 4x4")
+        dist = None
+        if any(get(k) is not None for k in _DIST_KEYS):
+            dist = parse_distortion({k: get(k, 0.0) for k in _DIST_KEYS}, source, f"frame {i}")
         cams.append(Camera(int(w), int(h), float(fx), float(fy), float(cx), float(cy),
-                           T @ _GL_TO_CV, image=str(fr["file_path"]).lstrip("./") if
+                           T @ _GL_TO_CV, dist=dist, image=str(fr["file_path"]).lstrip("./") if
                            str(fr["file_path"]).startswith("./") else str(fr["file_path"])))
     return cams
 

@@ -63,7 +63,7 @@ import pandas as pd
 
 from .baselines import (MethodNotApplicable, Prediction, as_prediction, idcompare_method,
                         partition_method, pixel_diff_method)
-from .cameras import Camera, load_cameras
+from .cameras import Camera, image_root, load_cameras
 from .errors import ConfigError, SceneError
 from .io import read_image, read_json, read_mask, write_csv, write_image, write_mask
 from .scene import list_images
@@ -469,7 +469,7 @@ def evaluate_scene(scene_dir: str | Path, cameras_json: str | Path | None, out_d
     than the ground truth is resized (nearest) with a warning. Returns the metrics table.
     """
     out_dir = Path(out_dir)
-    views = find_eval_views(scene_dir, cameras_json)
+    views = find_eval_views(image_root(scene_dir, cameras_json), cameras_json)
     rows, box_frames = [], []
     for view in progress(views, desc=f"evaluate {scene_name}"):
         gt = view.read_gt() if view.mask is not None else None

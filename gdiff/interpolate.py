@@ -37,12 +37,13 @@ import logging
 import math
 import os
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 from scipy.spatial.transform import Rotation
 
 from .align import orbit_radius, rotation_angle_deg
-from .cameras import Camera, load_cameras
+from .cameras import Camera, image_root, load_cameras
 from .errors import SceneError
 from .io import read_json, write_json
 
@@ -316,6 +317,9 @@ def build_sequence(cameras_json: str | os.PathLike, out_json: str | os.PathLike,
     ref = all_keys[0]
     top = {"width": ref.width, "height": ref.height, **{f: getattr(ref, f) for f in _INTRINSICS}}
     out = dict(top)
+    root = image_root(None, cameras_json)
+    if root is not None:  # undistorted photos: keep the key frames' image root
+        out["image_dir"] = os.path.relpath(root, Path(out_json).parent)
     out["paths"] = {}
     summary = {}
     for p, st in PATHS.items():

@@ -27,7 +27,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from .cameras import Camera
+from .cameras import Camera, image_root
 from .errors import SceneError
 from .exr import write_frame
 from .interpolate import load_sequence
@@ -184,6 +184,7 @@ def render_sequences(model_path: str | os.PathLike, poses_json: str | os.PathLik
     dev = resolve_device(device)
     t_start = time.time()
     seq = load_sequence(poses_json)
+    photo_root = image_root(scene_dir, poses_json)  # undistorted photos, if any
     for p in ("p1", "p2"):
         if not seq.get(p):
             raise SceneError(f"{poses_json}: path {p} is missing or empty; re-run the "
@@ -245,7 +246,7 @@ def render_sequences(model_path: str | os.PathLike, poses_json: str | os.PathLik
                                                         if cam.image else ""))
                                 tkeys.append(keys[i])
                             if scene_dir is not None and keys[i] and KEY_SET[p][0] == tn:
-                                photo = read_image(Path(scene_dir) / cam.image)
+                                photo = read_image(photo_root / cam.image)
                                 if photo.shape[:2] != preview.shape[:2]:
                                     photo = cv2.resize(photo, preview.shape[1::-1],
                                                        interpolation=cv2.INTER_AREA)

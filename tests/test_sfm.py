@@ -291,7 +291,10 @@ def test_options_validation():
     with pytest.raises(ConfigError, match="poses"):
         from_config(PosesOptions, {"source": "gps"}, "poses")
     with pytest.raises(ConfigError, match="camera_model"):
-        from_config(PosesOptions, {"camera_model": "OPENCV"}, "poses")
+        from_config(PosesOptions, {"camera_model": "FISHEYE"}, "poses")
+    assert from_config(PosesOptions, {"camera_model": "OPENCV"}, "poses").camera_model == "OPENCV"
+    with pytest.raises(ConfigError, match="min_points_per_image"):
+        from_config(PosesOptions, {"min_points_per_image": -1}, "poses")
     with pytest.raises(ConfigError, match="unknown key"):
         from_config(PosesOptions, {"matchr": "x"}, "poses")
     with pytest.raises(ConfigError, match="max_reproj_error"):

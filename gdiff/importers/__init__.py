@@ -25,13 +25,13 @@ import logging
 from pathlib import Path
 
 from ..errors import ConfigError, SceneError
-from . import ccs3d, cnerf, gscd, paslcd
+from . import ccs3d, cnerf, gscd, paslcd, tfyaml
 from ._common import SceneWriter
 
 log = logging.getLogger("gdiff.importers")
 
-FORMATS = {m.FORMAT: m for m in (cnerf, gscd, paslcd, ccs3d)}
-ALIASES = {"c-nerf": "cnerf", "3dgs-cd": "3dgscd", "3dgs_cd": "3dgscd", "gscd": "3dgscd"}
+FORMATS = {m.FORMAT: m for m in (cnerf, gscd, paslcd, ccs3d, tfyaml)}
+ALIASES = {"tf": "tf-yaml", "tfyaml": "tf-yaml", "c-nerf": "cnerf", "3dgs-cd": "3dgscd", "3dgs_cd": "3dgscd", "gscd": "3dgscd"}
 
 __doc__ += "\n".join(f"\n* ``{m.FORMAT}`` — {m.SUMMARY}" for m in FORMATS.values())
 
@@ -56,6 +56,8 @@ def detect_format(src: str | Path) -> str | None:
     if (src / "gt_mask").is_dir() and any((src / n).is_dir()
                                           for n in ("input_orig_test", "images_test")):
         return paslcd.FORMAT
+    if list(src.glob("*transformations.y*ml")) or list(src.glob("robot/*transformations.y*ml")):
+        return tfyaml.FORMAT
     if list(src.glob("*/poses_bounds.npy")):
         return cnerf.FORMAT
     return None
@@ -91,7 +93,7 @@ def main(argv=None) -> int:
                     "scene folder.",
         epilog="formats:\n" + "\n".join(f"  {m.SUMMARY}" for m in FORMATS.values())
         + "\n\nSee docs/datasets.md for how each dataset's masks map to eval views.")
-    p.add_argument("format", help="cnerf | 3dgscd | paslcd | ccs3d | auto (guess from layout)")
+    p.add_argument("format", help="cnerf | 3dgscd | paslcd | ccs3d | tf-yaml | auto (guess from layout)")
     p.add_argument("src", type=Path, help="the dataset's scene folder")
     p.add_argument("dst", type=Path, help="the gdiff scene folder to create")
     p.add_argument("--copy", action="store_true", help="copy images instead of symlinking")

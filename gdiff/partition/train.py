@@ -17,7 +17,7 @@ import numpy as np
 import pandas as pd
 import torch
 
-from ..cameras import Camera
+from ..cameras import Camera, image_root
 from ..device import resolve_device
 from ..errors import TrainingError
 from ..io import atomic_path, write_csv, write_json
@@ -293,7 +293,8 @@ def train_partition(fit_model_path, cameras_json, keyframes_csv, scene_dir, out_
     fit = load_model(fit_model_path, dev)
     fo = _fit_options(fit)
     max_side = fo["max_side"] if opts.max_side is None else opts.max_side
-    views = read_key_views(keyframes_csv, cameras_json, scene_dir, max_side)
+    views = read_key_views(keyframes_csv, cameras_json, image_root(scene_dir, cameras_json),
+                           max_side)
     data = [{"camera": v.camera, "time": v.time,
              "image": torch.from_numpy(_load_image(v.image, v.camera)).to(dev),
              "target": torch.from_numpy(_load_mask(v.target, v.camera)).to(dev),

@@ -17,14 +17,22 @@ Two sources of poses:
 * ``known`` — ``cameras.json`` (gdiff layout, or the ground-truth layout with an
   ``intrinsics`` block) or a nerfstudio / instant-ngp ``transforms.json`` in the scene folder.
   The poses are kept as given and sparse points are triangulated with pycolmap from features
-  matched between the images (pose-proximity pairs for large sets), so later stages always have
-  a point cloud.
+  matched between the images (pose-proximity pairs for large sets). Lens distortion given in
+  the file (OpenCV k1, k2, p1, p2[, k3]) is removed first: the photos are undistorted once
+  (:mod:`gdiff.sfm.undistort`) and later stages read them from ``images/``.
+
+With ``camera_model`` OPENCV / RADIAL / SIMPLE_RADIAL, COLMAP estimates the distortion and the
+photos are undistorted the same way. When triangulation leaves fewer than
+``min_points_per_image`` points per image, points seeded in the camera frusta
+(:mod:`gdiff.sfm.seed`) are added to ``points.ply`` so a fit never starts from a handful.
 
 Outputs in ``out_dir`` (written in a temporary folder inside ``out_dir`` and moved in at the
 end; ``cameras.json`` last, so its presence means the stage finished):
 
 * ``sparse/0/`` — the COLMAP binary model (cameras, images, points3D),
-* ``points.ply`` — sparse points, binary little-endian ``x y z`` float32 +
+* ``images/`` — undistorted photos under their scene-relative paths (only when a camera had
+  distortion; ``cameras.json`` then has ``"image_dir": "images"``),
+* ``points.ply`` — sparse points (and seeded ones, see above), binary little-endian ``x y z`` float32 +
   ``red green blue`` uint8,
 * ``cameras.json`` — see :mod:`gdiff.cameras` (c2w in OpenCV axes, pixel centres at +0.5,
   which is also COLMAP's convention).

@@ -165,18 +165,25 @@ def refine_model(rec, max_error: float, iterations: int, refine_principal_point:
             "reprojection_before": before, "reprojection_after": after}
 
 
-def _camera_of(image, rec) -> tuple[int, int, float, float, float, float]:
-    """(width, height, fx, fy, cx, cy) of a pycolmap image's camera."""
+def _camera_of(image, rec) -> tuple[int, int, float, float, float, float, tuple | None]:
+    """(width, height, fx, fy, cx, cy, dist) of a pycolmap image's camera; ``dist`` is the
+    OpenCV ``(k1, k2, p1, p2)`` of the distortion models (None for pinhole models)."""
     cam = rec.cameras[image.camera_id]
     p = np.asarray(cam.params, dtype=np.float64)
-    if cam.model.name == "SIMPLE_PINHOLE":
-        f, cx, cy = p
+    name = cam.model.name
+    dist = None
+    if name in ("SIMPLE_PINHOLE", "SIMPLE_RADIAL", "RADIAL"):
+        f, cx, cy = p[:3]
         fx = fy = f
-    elif cam.model.name == "PINHOLE":
-        fx, fy, cx, cy = p
+        k = list(p[3:]) + [0.0] * (2 - len(p[3:]))
+        dist = (k[0], k[1], 0.0, 0.0) if name != "SIMPLE_PINHOLE" else None
+    elif name in ("PINHOLE", "OPENCV"):
+        fx, fy, cx, cy = p[:4]
+        dist = tuple(float(v) for v in p[4:8]) if name == "OPENCV" else None
     else:  # pragma: no cover - options restrict the model
-        raise PosesError(f"camera model {cam.model.name} is not a pinhole model")
-    return int(cam.width), int(cam.height), float(fx), float(fy), float(cx), float(cy)
+        raise PosesError(f"camera model {name} is not supported")
+    return (int(cam.width), int(cam.height), float(fx), float(fy), float(cx), float(cy),
+            dist)
 
 
 def _c2w_of(image) -> np.ndarray:
@@ -257,16 +264,16 @@ def _run_colmap(root: Path, work: Path, images, sizes, opts: PosesOptions):
         if n in dropped:
             continue
         im = by_name[n]
-        w, h, fx, fy, cx, cy = _camera_of(im, rec)
+        w, h, fx, fy, cx, cy, dist = _camera_of(im, rec)
         cams.append(Camera(w, h, fx, fy, cx, cy, _c2w_of(im), image=n, set=st,
-                           time=SET_TIME[st]))
+                           time=SET_TIME[st], dist=dist))
     summary = {"source": "colmap", "matcher": matcher, "images": _count(images),
                "registered": _count(images, set(by_name)), "dropped": dropped,
                "num_models": len(models), "mapper_attempts": attempts,
                "num_points": int(rec.num_points3D()),
                "mean_reprojection_error": float(rec.compute_mean_reprojection_error()),
                "refinement": refine}
-    return cams, rec, summary
+    return cams, rec, summary, None
 
 
 def _model_key(rec) -> tuple[int, float]:

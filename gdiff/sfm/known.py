@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import logging
 import os
+from dataclasses import replace
 from pathlib import Path
 
 from ..cameras import SET_TIME, Camera, cameras_from_json, cameras_from_transforms
@@ -15,6 +16,7 @@ from .colmap import _extract, _mapper_options, _match, extraction_scale
 from .images import _check_unregistered, _count, set_from_path
 from .options import PosesOptions
 from .pairs import proximity_pairs
+from .undistort import undistort_scene
 
 log = logging.getLogger("gdiff.sfm")
 
@@ -76,7 +78,7 @@ def _match_known(known: list[Camera], images: list[tuple[str, str]], src: Path,
             raise PosesError(f"{src}: image {name} is {w}x{h} but its known camera says "
                              f"{c.width}x{c.height}; give intrinsics for the images as stored")
         out[name] = Camera(c.width, c.height, c.fx, c.fy, c.cx, c.cy, c.c2w.copy(), image=name,
-                           set=st, time=SET_TIME[st])
+                           set=st, time=SET_TIME[st], dist=c.dist)
     return out
 
 
@@ -115,9 +117,15 @@ def _known_reconstruction(db: Path, cams: dict[str, Camera]):
 
 
 def _run_known(root: Path, work: Path, images, sizes, known, opts: PosesOptions):
+    """Known poses: undistort the photos if the cameras carry distortion (into
+    ``work/images``), then triangulate matched features with the poses held fixed.
+
+    Returns ``(cameras, reconstruction, summary, image_dir)``; ``image_dir`` is ``"images"``
+    when undistorted photos were written, else None."""
     import pycolmap
 
     known_cams, src = known
+    opts = replace(opts, camera_model="PINHOLE")  # known (undistorted) intrinsics are pinhole
     log.info("known poses from %s (%d cameras)", src, len(known_cams))
     matched = _match_known(known_cams, images, src, sizes)
     dropped = _check_unregistered(images, set(matched), opts.max_unregistered_fraction,
@@ -125,6 +133,12 @@ def _run_known(root: Path, work: Path, images, sizes, known, opts: PosesOptions)
     images_k = [(n, s) for n, s in images if n in matched]
     names = [n for n, _ in images_k]
     cams = [matched[n] for n in names]
+    image_dir = None
+    if any(c.dist is not None for c in cams):
+        log.info("%s gives lens distortion: undistorting the photos", src)
+        cams = undistort_scene(root, work / "images", cams)
+        matched = dict(zip(names, cams))
+        root, image_dir = work / "images", "images"
     intr = {(c.width, c.height, c.fx, c.fy, c.cx, c.cy) for c in cams}
     single = len(intr) == 1
     c0 = cams[0]
@@ -149,14 +163,16 @@ def _run_known(root: Path, work: Path, images, sizes, known, opts: PosesOptions)
                                           opts, len(names),
                                           extraction_scale(sizes, opts.max_image_size)),
                                       refine_intrinsics=False)
-    if rec.num_points3D() == 0:
-        raise PosesError(
-            f"{src}: no sparse points could be triangulated with the known poses. Causes: the "
-            "poses do not fit the images (cameras.json expects OpenCV camera-to-world "
-            "matrices, x right, y down, z forward; transforms.json OpenGL ones), or the images "
-            "share too few features. Fix the poses file or set poses.source: colmap.")
+    if rec.num_points3D() < len(names):
+        log.warning(
+            "%s: only %d sparse points could be triangulated with the known poses. Causes: "
+            "the poses do not fit the images (cameras.json expects OpenCV camera-to-world "
+            "matrices, x right, y down, z forward; transforms.json OpenGL ones) or are too "
+            "inaccurate for poses.max_reproj_error, or the images share too few features. "
+            "Points seeded in the camera frusta stand in for them.", src,
+            rec.num_points3D())
     summary = {"source": "known", "matcher": matcher, "images": _count(images),
                "registered": _count(images, set(names)), "dropped": dropped,
                "num_models": 1, "num_points": int(rec.num_points3D()),
                "mean_reprojection_error": float(rec.compute_mean_reprojection_error())}
-    return cams, rec, summary
+    return cams, rec, summary, image_dir

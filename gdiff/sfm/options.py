@@ -5,6 +5,9 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 
+CAMERA_MODELS = ("PINHOLE", "SIMPLE_PINHOLE", "SIMPLE_RADIAL", "RADIAL", "OPENCV")
+
+
 @dataclass
 class PosesOptions:
     """Options of the poses stage (config section ``poses``).
@@ -18,7 +21,12 @@ class PosesOptions:
         exhaustive_max_images: image count up to which ``auto`` matches all pairs.
         sequential_overlap: capture-order neighbours matched on each side (``sequential``).
         sequential_links: evenly spaced images of every set each image is also matched with.
-        camera_model: ``PINHOLE`` (fx, fy, cx, cy) or ``SIMPLE_PINHOLE`` (one focal length).
+        camera_model: COLMAP camera model: ``PINHOLE`` (fx, fy, cx, cy), ``SIMPLE_PINHOLE``
+            (one focal length), or a model with lens distortion estimated by COLMAP:
+            ``SIMPLE_RADIAL`` (f, k1), ``RADIAL`` (f, k1, k2) or ``OPENCV`` (fx, fy, k1, k2, p1,
+            p2); with those the photos are undistorted once (into ``poses/images/``) and
+            every later stage uses the undistorted photos and pinhole cameras. Known poses
+            take their distortion from cameras.json / transforms.json instead.
         max_image_size: longer image side for feature extraction (larger images are
             downscaled for SIFT; poses and intrinsics stay in full-resolution pixels).
         max_num_features: SIFT features per image.
@@ -42,6 +50,14 @@ class PosesOptions:
             the lowest reprojection error, is kept.
         refine_principal_point: let bundle adjustment move the principal point (off = keep it
             at the image centre, COLMAP's default).
+        min_points_per_image: when triangulation leaves fewer sparse points than this per
+            registered image (known poses on few, weakly textured or imprecisely posed
+            photos), ``seed_points_per_image`` points per image are added to the initial point
+            cloud (``points.ply``; not to the COLMAP model) in the camera frusta: random pixel
+            rays, depths within the scene's range, colours from the photos (see
+            ``gdiff.sfm.seed``), so a fit never starts from a handful of Gaussians.
+            0 = never seed.
+        seed_points_per_image: points seeded per image when seeding (see above).
         max_unregistered_fraction: if a set (before, after, eval_before, eval_after) loses more
             than this fraction of its images, the stage fails listing them; otherwise they are
             dropped with a warning.
@@ -64,6 +80,8 @@ class PosesOptions:
     refine_iterations: int = 3
     mapper_attempts: int = 3
     refine_principal_point: bool = False
+    min_points_per_image: int = 10
+    seed_points_per_image: int = 1000
     max_unregistered_fraction: float = 0.2
     num_threads: int = -1
     seed: int = 0
@@ -75,14 +93,17 @@ class PosesOptions:
         if self.matcher not in ("auto", "exhaustive", "sequential"):
             raise ValueError(f"matcher must be auto, exhaustive or sequential, not "
                              f"{self.matcher!r}")
-        if self.camera_model not in ("PINHOLE", "SIMPLE_PINHOLE"):
-            raise ValueError(f"camera_model must be PINHOLE or SIMPLE_PINHOLE (later stages "
-                             f"render undistorted pinhole cameras), not {self.camera_model!r}")
+        if self.camera_model not in CAMERA_MODELS:
+            raise ValueError(f"camera_model must be one of {', '.join(CAMERA_MODELS)}, not "
+                             f"{self.camera_model!r}")
         if not 0.0 <= self.max_unregistered_fraction <= 1.0:
             raise ValueError("max_unregistered_fraction must lie in [0, 1]")
         if self.sequential_overlap < 1 or self.sequential_links < 0:
             raise ValueError("sequential_overlap must be >= 1 and sequential_links >= 0")
         if not self.max_reproj_error > 0:
             raise ValueError("max_reproj_error must be > 0 (pixels)")
+        if self.min_points_per_image < 0 or self.seed_points_per_image < 1:
+            raise ValueError("min_points_per_image must be >= 0 and seed_points_per_image "
+                             ">= 1")
         if self.refine_iterations < 0 or self.mapper_attempts < 1:
             raise ValueError("refine_iterations must be >= 0 and mapper_attempts >= 1")

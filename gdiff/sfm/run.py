@@ -10,6 +10,8 @@ import tempfile
 import time
 from pathlib import Path
 
+import numpy as np
+
 from ..cameras import SETS, Camera, save_cameras
 from ..errors import PosesError, SceneError
 from ..splat.ply import write_points
@@ -17,6 +19,8 @@ from .colmap import _colmap_logging, _points_of, _run_colmap
 from .images import _count, _image_sizes, discover_images
 from .known import _run_known, _strip, load_known_cameras
 from .options import PosesOptions
+from .seed import depth_range, seed_frustum_points
+from .undistort import undistort_reconstruction, undistort_scene
 
 log = logging.getLogger("gdiff.sfm")
 
@@ -36,7 +40,9 @@ def run_poses(scene_dir: str | os.PathLike, out_dir: str | os.PathLike,
 
     Returns:
         Summary dict: ``source`` (colmap | known), ``matcher``, ``images`` and ``registered``
-        (counts per set), ``dropped`` (image names), ``num_models``, ``num_points``,
+        (counts per set), ``dropped`` (image names), ``num_models``, ``num_points`` (in the
+        sparse model), ``num_points_triangulated`` and ``num_points_seeded`` (in points.ply;
+        see :mod:`gdiff.sfm.seed`), ``undistorted`` (photos written to ``images/``),
         ``mean_reprojection_error`` (pixels), ``seconds``; for COLMAP also
         ``mapper_attempts`` and ``refinement`` (see :func:`refine_model`).
 
@@ -74,12 +80,36 @@ def run_poses(scene_dir: str | os.PathLike, out_dir: str | os.PathLike,
                 result = _run_known(root, work, images, sizes, known, opts)
             else:
                 result = _run_colmap(root, work, images, sizes, opts)
-        cams, rec, summary = result
-        write_points(work / "points.ply", *_points_of(rec))
+        cams, rec, summary, image_dir = result
+        if image_dir is None and any(c.dist is not None for c in cams):
+            log.info("COLMAP estimated lens distortion (%s): undistorting the photos",
+                     opts.camera_model)
+            pinholes = undistort_scene(root, work / "images", cams)
+            undistort_reconstruction(rec, {c.image: c for c in cams},
+                                     {c.image: c for c in pinholes})
+            cams, image_dir = pinholes, "images"
+        xyz, rgb = _points_of(rec)
+        n_tri = len(xyz)
+        n_min = opts.min_points_per_image * len(cams)
+        n_seed = opts.seed_points_per_image * len(cams) if n_tri < n_min else 0
+        if n_seed:
+            near, far, how = depth_range(cams, xyz)
+            sx, sc = seed_frustum_points(cams, work / image_dir if image_dir else root, n_seed,
+                                         near, far, seed=opts.seed)
+            log.info("%d triangulated points < %d (poses.min_points_per_image %d x %d "
+                     "images): seeded %d points in the camera frusta, depths %.3g to %.3g "
+                     "(from the %s)", n_tri, n_min, opts.min_points_per_image, len(cams),
+                     n_seed, near, far, how)
+            xyz, rgb = np.concatenate([xyz, sx]), np.concatenate([rgb, sc])
+        summary.update(num_points_triangulated=n_tri, num_points_seeded=n_seed,
+                       undistorted=image_dir is not None)
+        log.info("initial points: %d triangulated, %d seeded in the camera frusta", n_tri,
+                 n_seed)
+        write_points(work / "points.ply", xyz, rgb)
         model_dir = work / "sparse" / "0"
         model_dir.mkdir(parents=True, exist_ok=True)
         rec.write_binary(str(model_dir))
-        _commit(work, out, cams)
+        _commit(work, out, cams, image_dir)
     finally:
         shutil.rmtree(work, ignore_errors=True)
     summary["seconds"] = round(time.time() - t0, 2)
@@ -89,9 +119,13 @@ def run_poses(scene_dir: str | os.PathLike, out_dir: str | os.PathLike,
     return summary
 
 
-def _commit(work: Path, out: Path, cams: list[Camera]) -> None:
+def _commit(work: Path, out: Path, cams: list[Camera], image_dir: str | None) -> None:
     """Move the finished outputs from ``work`` into ``out``; cameras.json last."""
     (out / "cameras.json").unlink(missing_ok=True)
+    if (out / "images").exists():  # undistorted photos of an earlier run
+        os.replace(out / "images", work / "old_images")
+    if image_dir:
+        os.replace(work / image_dir, out / image_dir)
     (out / "sparse").mkdir(exist_ok=True)
     target = out / "sparse" / "0"
     if target.exists():
@@ -99,4 +133,4 @@ def _commit(work: Path, out: Path, cams: list[Camera]) -> None:
         os.replace(target, old)
     os.replace(work / "sparse" / "0", target)
     os.replace(work / "points.ply", out / "points.ply")
-    save_cameras(out / "cameras.json", cams)
+    save_cameras(out / "cameras.json", cams, image_dir=image_dir)

@@ -73,7 +73,7 @@ import numpy as np
 import pandas as pd
 import torch
 
-from ..cameras import Camera, load_cameras
+from ..cameras import Camera, image_root, load_cameras
 from ..device import resolve_device
 from ..errors import SceneError, TrainingError
 from ..io import atomic_path, read_image, write_csv
@@ -610,7 +610,7 @@ def fit_scene(scene_dir: str | Path, cameras_json: str | Path, points_ply: str |
             raise SceneError(f"{cameras_json}: no registered '{s}' images; the fit needs both "
                              "before and after images (check the poses stage)")
     xyz, rgb = read_points(points_ply)
-    views = load_views(scene_dir, cams, opts.max_side, dev,
+    views = load_views(image_root(scene_dir, cameras_json), cams, opts.max_side, dev,
                        opts.coarse_downscale if opts.coarse_iters > 0 else 1)
     extent = camera_extent(np.stack([c.center for c in cams]))
     torch.manual_seed(opts.seed)

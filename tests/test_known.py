@@ -1,0 +1,316 @@
+"""Known poses on real-capture-like input: frustum seeding when triangulation leaves too few
+points, lens distortion (given in cameras.json or estimated by COLMAP) undistorted once in the
+poses stage, and the ROS tf-yaml importer."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+import yaml
+from scipy.spatial.transform import Rotation
+
+from gdiff.align import pose_errors
+from gdiff.cameras import Camera, cameras_from_json, cameras_to_json, image_root, load_cameras
+from gdiff.errors import SceneError
+from gdiff.evaluate import find_eval_views
+from gdiff.importers import detect_format, import_scene
+from gdiff.io import read_image, write_image
+from gdiff.sfm import PosesOptions, read_cameras_file, run_poses
+from gdiff.sfm.seed import depth_range
+from gdiff.sfm.undistort import undistorted_camera
+from gdiff.splat.ply import read_points
+
+DIST = (-0.25, 0.08, 0.002, -0.0015, 0.0)  # strong barrel: ~6 px at the corners of 128x96
+
+
+def _cv_K(c: Camera) -> np.ndarray:
+    K = c.K.copy()
+    K[:2, 2] -= 0.5
+    return K
+
+
+def _distort(img: np.ndarray, cam: Camera, dist) -> np.ndarray:
+    """The photo a lens with ``dist`` (and ``cam``'s K) takes of the pinhole image ``img``."""
+    gx, gy = np.meshgrid(np.arange(cam.width, dtype=np.float64),
+                         np.arange(cam.height, dtype=np.float64))
+    pts = np.stack([gx.ravel(), gy.ravel()], 1).reshape(-1, 1, 2)
+    src = cv2.undistortPoints(pts, _cv_K(cam), np.asarray(dist), P=_cv_K(cam)).reshape(
+        cam.height, cam.width, 2).astype(np.float32)
+    return cv2.remap(img, src[..., 0], src[..., 1], cv2.INTER_LINEAR,
+                     borderMode=cv2.BORDER_REFLECT)
+
+
+@pytest.fixture(scope="module")
+def gt_tiny(synth_tiny_dir):
+    return read_cameras_file(Path(synth_tiny_dir) / "gt_cameras.json")
+
+
+@pytest.fixture(scope="module")
+def distorted_tiny(synth_tiny_dir, gt_tiny, tmp_path_factory):
+    """The tiny scene photographed through a distorting lens (eval masks too)."""
+    src = Path(synth_tiny_dir)
+    dst = tmp_path_factory.mktemp("distorted") / "scene"
+    for c in gt_tiny:
+        write_image(dst / c.image, _distort(read_image(src / c.image), c, DIST))
+    ref = gt_tiny[0]
+    for m in sorted((src / "eval" / "masks").glob("*.png")):
+        mask = cv2.imread(str(m), cv2.IMREAD_GRAYSCALE)
+        gx, gy = np.meshgrid(np.arange(ref.width, dtype=np.float64),
+                             np.arange(ref.height, dtype=np.float64))
+        pts = np.stack([gx.ravel(), gy.ravel()], 1).reshape(-1, 1, 2)
+        s = cv2.undistortPoints(pts, _cv_K(ref), np.asarray(DIST), P=_cv_K(ref)).reshape(
+            ref.height, ref.width, 2).astype(np.float32)
+        (dst / "eval" / "masks").mkdir(parents=True, exist_ok=True)
+        cv2.imwrite(str(dst / "eval" / "masks" / m.name),
+                    cv2.remap(mask, s[..., 0], s[..., 1], cv2.INTER_NEAREST))
+    return dst
+
+
+# ------------------------------------------------------------------ cameras.json distortion
+
+
+def test_cameras_json_distortion_forms_and_errors():
+    base = {"width": 64, "height": 48, "fx": 50, "fy": 50, "cx": 32, "cy": 24,
+            "frames": [{"image": "before/a.png", "c2w": np.eye(4).tolist()},
+                       {"image": "after/a.png", "c2w": np.eye(4).tolist(),
+                        "distortion": {"k1": 0.1, "p2": 0.01}}]}
+    cams = cameras_from_json({**base, "distortion": [-0.1, 0.02, 0.0, 0.0, 0.003]})
+    assert cams[0].dist == (-0.1, 0.02, 0.0, 0.0, 0.003)
+    assert cams[1].dist == (0.1, 0.0, 0.0, 0.01, 0.0)
+    again = cameras_from_json(cameras_to_json(cams))
+    assert [c.dist for c in again] == [c.dist for c in cams]
+    assert cameras_from_json({**base, "distortion": [0, 0, 0, 0]})[0].dist is None
+    with pytest.raises(SceneError, match="distortion.*3 value"):
+        cameras_from_json({**base, "distortion": [0.1, 0.2, 0.3]}, source="x.json")
+    with pytest.raises(SceneError, match="unknown distortion key"):
+        cameras_from_json({**base, "distortion": {"k7": 1.0}}, source="x.json")
+
+
+# ------------------------------------------------------------------ seeding
+
+
+def test_known_poses_without_sparse_points_seed_the_frusta(gt_tiny, tmp_path):
+    """Photos with nothing to match (independent noise): no point can be triangulated, yet
+    the fit gets a full point cloud inside the cameras' views, coloured from the photos."""
+    scene = tmp_path / "scene"
+    rng = np.random.default_rng(0)
+    cams = [c for c in gt_tiny if c.set in ("before", "after")]
+    for c in cams:
+        write_image(scene / c.image, rng.random((c.height, c.width, 3), dtype=np.float32))
+    (scene / "cameras.json").write_text(json.dumps(cameras_to_json(cams)))
+    out = tmp_path / "poses"
+    summary = run_poses(scene, out, PosesOptions(num_threads=1, seed_points_per_image=200),
+                        images=[(c.image, c.set) for c in cams])
+    assert summary["num_points"] == summary["num_points_triangulated"] == 0
+    assert summary["num_points_seeded"] == 200 * len(cams)
+    xyz, rgb = read_points(out / "points.ply")
+    assert len(xyz) == 200 * len(cams)
+    # every point lies in front of the camera it was drawn for (round robin, 200 each) and
+    # projects inside its image, onto a pixel of the colour it took
+    for k, c in enumerate(cams):
+        p = (c.w2c[:3, :3] @ xyz[200 * k:200 * (k + 1)].T.astype(np.float64)).T + c.w2c[:3, 3]
+        assert (p[:, 2] > 0).all()
+        uv = (c.K @ p.T).T
+        uv = uv[:, :2] / uv[:, 2:]
+        assert (uv >= -1e-3).all() and (uv[:, 0] <= c.width).all() and \
+            (uv[:, 1] <= c.height).all()
+        img = read_image(scene / c.image)
+        col = img[np.minimum(uv[:, 1].astype(int), c.height - 1),
+                  np.minimum(uv[:, 0].astype(int), c.width - 1)]
+        assert np.abs(col - rgb[200 * k:200 * (k + 1)]).max() <= 1.5 / 255  # rgb in [0, 1]
+    # no points to measure depths: the range comes from where the optical axes meet (the
+    # orbit centre, ~2.1-2.35 m from the cameras), so it covers the table and the room
+    near, far, how = depth_range(cams, np.zeros((0, 3)))
+    assert "optical axes" in how and near < 1.0 and far > 4.0
+    d = np.linalg.norm(xyz[:200] - cams[0].center, axis=1)
+    assert d.min() >= near * 0.99 and d.max() <= far * 1.01 * 1.5
+
+
+def test_seeding_threshold_is_per_image(synth_tiny_dir, gt_tiny, tmp_path):
+    scene = tmp_path / "scene"
+    scene.mkdir()
+    for name in ("before", "after"):
+        (scene / name).symlink_to((Path(synth_tiny_dir) / name).resolve())
+    cams = [c for c in gt_tiny if c.set in ("before", "after")]
+    (scene / "cameras.json").write_text(json.dumps(cameras_to_json(cams)))
+    images = [(c.image, c.set) for c in cams]
+    low = run_poses(scene, tmp_path / "low", PosesOptions(num_threads=1, min_points_per_image=1),
+                    images=images)
+    assert low["num_points_triangulated"] > 20 and low["num_points_seeded"] == 0
+    high = run_poses(scene, tmp_path / "high",
+                     PosesOptions(num_threads=1, min_points_per_image=10000,
+                                  seed_points_per_image=50), images=images)
+    assert high["num_points_triangulated"] == low["num_points_triangulated"]
+    assert high["num_points_seeded"] == 50 * len(cams)
+    xyz, _ = read_points(tmp_path / "high" / "points.ply")
+    # depth range from the triangulated points: seeded points stay in and near the room
+    # (|x|, |y| < 3.2 m, 0 <= z <= 2.8 m)
+    near_room = (np.abs(xyz[:, :2]) < 5.0).all(1) & (xyz[:, 2] > -2.0) & (xyz[:, 2] < 4.5)
+    assert near_room.mean() > 0.9
+
+
+# ------------------------------------------------------------------ undistortion
+
+
+def _pinhole_error(img: np.ndarray, c: Camera, g: Camera, synth: Path) -> float:
+    """Mean absolute difference (4 px border left out) between ``img`` and the ground-truth
+    pinhole photo of ``g`` seen through ``c``'s intrinsics (same pose)."""
+    gx, gy = np.meshgrid(np.arange(c.width, dtype=np.float64),
+                         np.arange(c.height, dtype=np.float64))
+    ray = np.linalg.inv(_cv_K(c)) @ np.stack([gx.ravel(), gy.ravel(), np.ones(gx.size)])
+    src = (_cv_K(g) @ ray)[:2].reshape(2, c.height, c.width).astype(np.float32)
+    want = cv2.remap(read_image(synth / g.image), src[0], src[1], cv2.INTER_LINEAR)
+    return float(np.abs(img - want)[4:-4, 4:-4].mean())
+
+
+def _check_undistorted(out: Path, scene: Path, gt: dict[str, Camera], synth: Path,
+                       fit_zoom: bool = False) -> list:
+    """cameras.json points at undistorted photos that match the pinhole ground truth (mean
+    absolute difference < 0.025, and well below that of the distorted photo). ``fit_zoom``:
+    up to a focal-length scale within +-3 % (self-calibration's uncertainty on tiny photos)."""
+    data = json.loads((out / "cameras.json").read_text())
+    assert data["image_dir"] == "images" and "distortion" not in data
+    assert image_root(scene, out / "cameras.json") == out / "images"
+    cams = load_cameras(out / "cameras.json")
+    zooms = np.linspace(0.97, 1.03, 31) if fit_zoom else [1.0]
+    for c in cams[::5]:
+        got, raw = read_image(out / "images" / c.image), read_image(scene / c.image)
+        errs = {}
+        for name, img in (("got", got), ("raw", raw)):
+            errs[name] = min(_pinhole_error(img, Camera(
+                c.width, c.height, c.fx * z, c.fy * z, c.cx, c.cy, c.c2w), gt[c.image], synth)
+                for z in zooms)
+        assert errs["got"] < 0.025, (c.image, errs)
+        assert errs["raw"] > 1.5 * errs["got"], (c.image, errs)  # undistorting mattered
+    return cams
+
+
+def test_distortion_in_cameras_json_is_undistorted(distorted_tiny, gt_tiny, synth_tiny_dir,
+                                                   tmp_path):
+    import pycolmap
+
+    scene = distorted_tiny
+    given = [Camera(c.width, c.height, c.fx, c.fy, c.cx, c.cy, c.c2w, image=c.image,
+                    set=c.set, time=c.time, dist=DIST) for c in gt_tiny]
+    (scene / "cameras.json").write_text(json.dumps(cameras_to_json(given)))
+    out = tmp_path / "poses"
+    summary = run_poses(scene, out, PosesOptions(num_threads=1))
+    (scene / "cameras.json").unlink()
+    assert summary["undistorted"] and summary["num_points_triangulated"] > 100
+    gt = {c.image: c for c in gt_tiny}
+    cams = _check_undistorted(out, scene, gt, Path(synth_tiny_dir))
+    pin = undistorted_camera(given[0])
+    assert (cams[0].fx, cams[0].cy) == pytest.approx((pin.fx, pin.cy))
+    for c in cams:
+        assert np.allclose(c.c2w, gt[c.image].c2w)
+    # triangulated points reproject onto their (undistorted) keypoints mapped into the
+    # ground-truth pinhole images, through the ground-truth cameras
+    rec = pycolmap.Reconstruction(str(out / "sparse" / "0"))
+    errs = []
+    for im in rec.images.values():
+        g, c = gt[im.name], next(k for k in cams if k.image == im.name)
+        for p in im.points2D:
+            if not p.has_point3D():
+                continue
+            x_gt = (_cv_K(g) @ np.linalg.inv(_cv_K(c)) @ np.r_[p.xy - 0.5, 1.0])[:2] + 0.5
+            X = rec.points3D[p.point3D_id].xyz
+            q = g.K @ (g.w2c[:3, :3] @ X + g.w2c[:3, 3])
+            errs.append(np.linalg.norm(q[:2] / q[2] - x_gt))
+    assert len(errs) > 300 and np.median(errs) < 0.7 and np.mean(errs) < 1.0
+    # eval masks were undistorted with their views; evaluate finds them in the image root
+    views = find_eval_views(image_root(scene, out / "cameras.json"), out / "cameras.json")
+    assert len(views) == 3 and all(v.camera is not None for v in views)
+    assert all(Path(v.mask).is_relative_to(out / "images") for v in views)
+
+
+def test_colmap_estimates_and_removes_distortion(distorted_tiny, gt_tiny, synth_tiny_dir,
+                                                 tmp_path):
+    scene = distorted_tiny
+    assert not (scene / "cameras.json").exists()
+    out = tmp_path / "poses"
+    summary = run_poses(scene, out, PosesOptions(num_threads=1, camera_model="OPENCV"))
+    assert summary["source"] == "colmap" and summary["undistorted"]
+    gt = {c.image: c for c in gt_tiny}
+    # the estimated focal length is ~1 % off on 128x96 photos (it trades off against k1)
+    cams = _check_undistorted(out, scene, gt, Path(synth_tiny_dir), fit_zoom=True)
+    err = pose_errors(cams, [gt[c.image] for c in cams])
+    # tiny is 128x96: the same bounds as the pinhole registration test in test_sfm.py
+    assert err["rot_err_deg"].median() < 2.0 and err["center_err_frac"].median() < 0.05, err
+
+
+# ------------------------------------------------------------------ ROS tf-yaml importer
+
+
+def _tf_source(root: Path) -> dict[str, np.ndarray]:
+    """A made-up robot capture: 2 + 2 photos, provenance names, two tf YAML files, and a
+    ROS CameraInfo. Returns the true c2w per original frame name."""
+    rng = np.random.default_rng(3)
+    truth, entries = {}, {"scene1": [], "scene2": []}
+    views = []
+    for k, (st, scene) in enumerate([("before", "scene1"), ("before", "scene1"),
+                                     ("after", "scene2"), ("after", "scene2")]):
+        name = f"v{k % 2:02d}.png"
+        frame = f"rgb_image_raw-{1000 + k}.png"
+        write_image(root / st / name, rng.random((48, 64, 3), dtype=np.float32))
+        q = [float(v) for v in Rotation.random(random_state=k).as_quat()]  # x, y, z, w
+        t = [float(v) for v in rng.normal(size=3)]
+        c2w = np.eye(4)
+        c2w[:3, :3] = Rotation.from_quat(q).as_matrix()
+        c2w[:3, 3] = t
+        truth[f"{st}/{name}"] = c2w
+        sign = -1.0 if k == 1 else 1.0  # q and -q are the same rotation
+        entries[scene].append({
+            "file_name": frame, "id": k, "origin_frame": "/map",
+            "target_frame": "/head_rgbd_sensor_rgb_frame", "timestamp": 1.0 + k,
+            "rotation": {"w": sign * q[3], "x": sign * q[0], "y": sign * q[1],
+                         "z": sign * q[2]},
+            "translation": {"x": t[0], "y": t[1], "z": t[2]}})
+        views.append({"set": st, "name": name, "src_path": f"data/{scene}/{frame}"})
+    robot = root / "robot"
+    robot.mkdir()
+    for scene, e in entries.items():
+        (robot / f"{scene}_transformations.yaml").write_text(yaml.safe_dump(e))
+    (robot / "provenance.json").write_text(json.dumps({"views": views}))
+    (robot / "camera_info.json").write_text(json.dumps({
+        "height": 48, "width": 64, "distortion_model": "plumb_bob",
+        "D": [0.06, -0.2, -0.0001, -0.001, 0.15],
+        "K": [50.0, 0, 31.0, 0, 51.0, 23.5, 0, 0, 1]}))
+    return truth
+
+
+def test_tf_yaml_import(tmp_path):
+    src = tmp_path / "robot_capture"
+    truth = _tf_source(src)
+    assert detect_format(src) == "tf-yaml"
+    out = import_scene("tf-yaml", src, tmp_path / "scene")
+    cams = {c.image: c for c in read_cameras_file(out / "cameras.json")}
+    assert sorted(cams) == sorted(truth)
+    for name, c in cams.items():
+        assert np.allclose(c.c2w, truth[name], atol=1e-9), name
+        assert c.set == name.split("/")[0]
+        # ROS pixel centres are integers, gdiff's at +0.5
+        assert (c.fx, c.fy, c.cx, c.cy) == (50.0, 51.0, 31.5, 24.0)
+        assert c.dist == (0.06, -0.2, -0.0001, -0.001, 0.15)
+    meta = json.loads((out / "import.json").read_text())
+    assert meta["known_poses"] and meta["counts"] == {"before": 2, "after": 2}
+
+
+def test_tf_yaml_import_errors(tmp_path):
+    src = tmp_path / "robot_capture"
+    _tf_source(src)
+    frames = yaml.safe_load((src / "robot" / "scene2_transformations.yaml").read_text())
+    (src / "robot" / "scene2_transformations.yaml").write_text(yaml.safe_dump(frames[:1]))
+    with pytest.raises(SceneError, match="no pose in .* for 1 photo.*after/v01.png"):
+        import_scene("tf-yaml", src, tmp_path / "a")
+    assert not (tmp_path / "a").exists()
+    del frames[0]["rotation"]
+    (src / "robot" / "scene2_transformations.yaml").write_text(yaml.safe_dump(frames))
+    with pytest.raises(SceneError, match="scene2_transformations.yaml: entry 0: needs"):
+        import_scene("tf-yaml", src, tmp_path / "b")
+    (src / "robot" / "camera_info.json").unlink()
+    with pytest.raises(SceneError, match="camera_info"):
+        import_scene("tf-yaml", src, tmp_path / "c")

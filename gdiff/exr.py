@@ -1,6 +1,6 @@
 """OpenEXR frames: rendered colour (linear), alpha and depth for the later stages.
 
-A rendered frame is one single-part scanline EXR (ZIP compression) with channels
+A rendered frame is one single-part scanline EXR with channels
 
 * ``R``, ``G``, ``B`` — linear radiance, half float (the renderer's sRGB-encoded values
   converted with :func:`gdiff.io.srgb_to_linear`),
@@ -9,6 +9,13 @@ A rendered frame is one single-part scanline EXR (ZIP compression) with channels
 
 readable by any OpenEXR reader (Blender, Nuke, oiiotool, exrheader). Extra header attributes
 (e.g. ``worldToCamera`` as a 4x4 float matrix, the standard EXR attribute) can be stored.
+
+Compression (:data:`FRAME_COMPRESSIONS`, the file's ``compression`` attribute): ``zip``,
+``zips``, ``piz``, ``rle`` and ``none`` are lossless for every channel. ``dwaa`` / ``dwab``
+(OpenEXR's DCT codec, 32- / 256-scanline blocks) are lossy on the half-float colour channels
+R, G, B only; OpenEXR's DWA codec stores every other channel (here A and Z) losslessly, so
+alpha and the float32 depth read back bit-exact with any of them. The DWA quantisation is set
+by ``dwaCompressionLevel`` (OpenEXR's default 45; higher = smaller and coarser).
 
 Inside the code images are sRGB-encoded float32 [H, W, 3]; :func:`write_frame` /
 :func:`read_frame` do the conversion so callers never see linear values by accident.
@@ -28,6 +35,23 @@ from .io import atomic_path, linear_to_srgb, srgb_to_linear
 # Pixel types OpenEXR can store, by numpy dtype.
 _EXR_DTYPES = (np.float16, np.float32, np.uint32)
 
+# Compressions a rendered frame may use: name -> lossless for the colour channels. Left out on
+# purpose: PXR24 (rounds float32 depth to 24 bits), B44/B44A (lossy on every half channel,
+# alpha included) and the codecs newer than OpenEXR 3.3 (ZSTD, HTJ2K), which older readers
+# (Blender, Nuke, oiiotool builds) cannot open.
+FRAME_COMPRESSIONS = {"zip": True, "zips": True, "piz": True, "rle": True, "none": True,
+                      "dwaa": False, "dwab": False}
+
+
+def _compression_constant(name: str):
+    import OpenEXR
+
+    key = "NO" if name.upper() == "NONE" else name.upper()
+    value = getattr(OpenEXR, f"{key}_COMPRESSION", None)
+    if value is None:
+        raise ValueError(f"unknown OpenEXR compression {name!r}")
+    return value
+
 
 def write_exr(path: str | os.PathLike, channels: dict[str, np.ndarray],
               attributes: dict[str, Any] | None = None, compression: str = "ZIP") -> None:
@@ -40,7 +64,8 @@ def write_exr(path: str | os.PathLike, channels: dict[str, np.ndarray],
             FLOAT, other integer types as UINT if non-negative).
         attributes: extra header attributes (str, float, int, or a 4x4 float32 array for
             matrices such as ``worldToCamera``).
-        compression: an OpenEXR compression name without ``_COMPRESSION`` (ZIP, PIZ, NO, ...).
+        compression: an OpenEXR compression name without ``_COMPRESSION``, any case (ZIP,
+            PIZ, DWAA, NO or NONE, ...).
     """
     import OpenEXR
 
@@ -65,7 +90,7 @@ def write_exr(path: str | os.PathLike, channels: dict[str, np.ndarray],
         elif a.dtype not in _EXR_DTYPES:
             raise ValueError(f"write_exr: channel {name!r} has unsupported dtype {a.dtype}")
         out[name] = np.ascontiguousarray(a)
-    header = {"compression": getattr(OpenEXR, f"{compression.upper()}_COMPRESSION"),
+    header = {"compression": _compression_constant(compression),
               "type": OpenEXR.scanlineimage}
     for k, v in (attributes or {}).items():
         if isinstance(v, np.ndarray) and v.shape == (4, 4):
@@ -100,7 +125,8 @@ def read_exr(path: str | os.PathLike, with_header: bool = False):
 
 
 def write_frame(path: str | os.PathLike, rgb_srgb: np.ndarray, alpha: np.ndarray,
-                depth: np.ndarray, attributes: dict[str, Any] | None = None) -> None:
+                depth: np.ndarray, attributes: dict[str, Any] | None = None,
+                compression: str = "zip", dwa_level: float | None = None) -> None:
     """Write a rendered frame: R, G, B (linear, half), A (half), Z (float32).
 
     Args:
@@ -108,16 +134,24 @@ def write_frame(path: str | os.PathLike, rgb_srgb: np.ndarray, alpha: np.ndarray
             converted with the sRGB curve extended by its power law).
         alpha: [H, W] or [H, W, 1] accumulated opacity.
         depth: [H, W] or [H, W, 1] expected depth (world units along the camera z axis).
+        compression: one of :data:`FRAME_COMPRESSIONS` (see the module docstring).
+        dwa_level: ``dwaCompressionLevel`` for ``dwaa`` / ``dwab`` (None = OpenEXR's default).
     """
+    if compression.lower() not in FRAME_COMPRESSIONS:
+        raise ValueError(f"write_frame: compression must be one of "
+                         f"{', '.join(FRAME_COMPRESSIONS)}, not {compression!r}")
     rgb = np.asarray(rgb_srgb, dtype=np.float32)
     if rgb.ndim != 3 or rgb.shape[2] != 3:
         raise ValueError(f"write_frame: rgb must be [H, W, 3], got {rgb.shape}")
     alpha = np.asarray(alpha, dtype=np.float32).reshape(rgb.shape[:2])
     depth = np.asarray(depth, dtype=np.float32).reshape(rgb.shape[:2])
-    lin = srgb_to_linear(rgb)
-    write_exr(path, {"R": lin[..., 0].astype(np.float16), "G": lin[..., 1].astype(np.float16),
-                     "B": lin[..., 2].astype(np.float16), "A": alpha.astype(np.float16),
-                     "Z": depth}, attributes=attributes)
+    lin = srgb_to_linear(rgb).astype(np.float16)
+    attrs = dict(attributes or {})
+    if dwa_level is not None and compression.lower().startswith("dwa"):
+        attrs["dwaCompressionLevel"] = float(dwa_level)
+    write_exr(path, {"R": lin[..., 0], "G": lin[..., 1], "B": lin[..., 2],
+                     "A": alpha.astype(np.float16), "Z": depth}, attributes=attrs,
+              compression=compression)
 
 
 def read_frame(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

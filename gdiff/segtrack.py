@@ -13,9 +13,9 @@ Files (results/<scene>/):
 
 * in: ``render/<path>/<t>/NNNNN.exr`` (R, G, B linear, A, Z depth) + ``render/frames.json``,
   ``sequence/poses.json`` (cameras, key frames);
-* ``segment`` writes ``instances/<path>/<t>/NNNNN.png`` (uint16 IDs),
-  ``instances/overlay/<path>/<t>/NNNNN.jpg``, ``instances/tracks.csv`` and, last,
-  ``instances/index.json``;
+* ``segment`` writes ``instances/<path>/<t>/NNNNN.png`` (uint16 IDs), ``instances/tracks.csv``
+  and, last, ``instances/index.json`` (with ``segment.overlays`` also
+  ``instances/overlay/<path>/<t>/NNNNN.jpg``);
 * ``compare`` writes ``change/<path>/<t0|t1|union>/NNNNN.png`` (255 = changed),
   ``change/changes.csv`` and, last, ``change/keyframes.csv``.
 """
@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import logging
 import os
+import shutil
 from collections import OrderedDict
 from collections.abc import Sequence
 from pathlib import Path
@@ -284,14 +285,16 @@ def segment_and_track(render_dir, poses_json, out_dir, options: SegmentOptions |
     """Stage ``segment``: ID maps of every rendered frame in one ID space.
 
     Reads ``render_dir/<path>/<t0|t1>/NNNNN.exr`` for every pose of ``poses_json``; writes
-    ``out_dir/<path>/<t>/NNNNN.png`` (uint16 IDs), ``out_dir/overlay/<path>/<t>/NNNNN.jpg``,
-    ``out_dir/tracks.csv`` and last ``out_dir/index.json`` (render_dir, frames, files).
+    ``out_dir/<path>/<t>/NNNNN.png`` (uint16 IDs), ``out_dir/tracks.csv`` and last
+    ``out_dir/index.json`` (render_dir, frames, files); with ``options.overlays`` also
+    ``out_dir/overlay/<path>/<t>/NNNNN.jpg`` (stale overlays are removed otherwise).
     Returns a summary dict (frames, tracks).
     """
     render_dir, out_dir = Path(render_dir), Path(out_dir)
     cams, _ = _poses(poses_json)
     files = _render_files(render_dir, cams)
-    seg = make_segmenter(options or SegmentOptions())
+    options = options or SegmentOptions()
+    seg = make_segmenter(options)
 
     def load(key):
         rgb, alpha, depth = _read_exr(files[key])
@@ -300,11 +303,14 @@ def segment_and_track(render_dir, poses_json, out_dir, options: SegmentOptions |
     # frames are read on demand (all of them at once would not fit in memory on long paths)
     ids, tracks = track_paths((list(files), load), seg, track_options)
     index = {"render_dir": os.path.relpath(render_dir, out_dir), "frames": []}
+    if not options.overlays and (out_dir / "overlay").is_dir():
+        shutil.rmtree(out_dir / "overlay")  # from an earlier run with overlays on
     for (p, t, i), m in progress(sorted(ids.items()), desc="write IDs"):
         rel = f"{p}/{t}/{i:05d}.png"
         write_ids(out_dir / rel, m)
-        rgb = _read_exr(files[(p, t, i)])[0]
-        write_image(out_dir / "overlay" / p / t / f"{i:05d}.jpg", _overlay(rgb, m))
+        if options.overlays:
+            rgb = _read_exr(files[(p, t, i)])[0]
+            write_image(out_dir / "overlay" / p / t / f"{i:05d}.jpg", _overlay(rgb, m))
         index["frames"].append({"path": p, "t": t, "frame": i, "ids": rel,
                                 "render": os.path.relpath(files[(p, t, i)], out_dir)})
     write_csv(out_dir / "tracks.csv", tracks)

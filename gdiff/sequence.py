@@ -5,9 +5,11 @@ through the before poses) at t=0 and t=1, and P~2 (the after poses) at t=0 and t
 ``out_dir`` (``results/<scene>/render/``)::
 
     <path>/<t0|t1>/NNNNN.exr     R, G, B (linear, half), A (alpha, half), Z (depth, float32);
-                                 see gdiff.exr. The header holds worldToCamera (OpenCV w2c),
-                                 gdiff_path, gdiff_time, gdiff_frame.
-    <path>/<t0|t1>/NNNNN.png     sRGB preview (8 bit)
+                                 see gdiff.exr; compression ``compression``. The header holds
+                                 worldToCamera (OpenCV w2c), gdiff_path, gdiff_time,
+                                 gdiff_frame.
+    <path>/<t0|t1>/NNNNN.png     sRGB preview (8 bit), only with ``previews`` (nothing
+                                 downstream reads them; the contact sheets are always written)
     <path>/<t0|t1>_sheet.png     contact sheet (key frames framed in green, frame numbers)
     frames.json                  the index, written last (see :func:`render_sequences`)
 
@@ -29,7 +31,7 @@ import numpy as np
 
 from .cameras import Camera, image_root
 from .errors import SceneError
-from .exr import write_frame
+from .exr import FRAME_COMPRESSIONS, write_frame
 from .interpolate import load_sequence
 from .io import read_image, write_image, write_json
 from .log import progress
@@ -50,7 +52,12 @@ class RenderOptions:
         batch: frames rasterised per renderer call (bounds memory).
         background: ``auto`` (the fit's training background; black if it trained on random
             backgrounds), ``black`` or ``white``.
-        previews: also write a PNG preview per frame.
+        compression: OpenEXR compression of the frames (:data:`gdiff.exr.FRAME_COMPRESSIONS`):
+            ``zip``, ``zips``, ``piz``, ``rle``, ``none`` (lossless), or ``dwaa`` / ``dwab``
+            (lossy on the colour channels only; alpha and depth stay exact).
+        dwa_level: OpenEXR ``dwaCompressionLevel`` for ``dwaa`` / ``dwab`` (higher = smaller
+            files, coarser colour; OpenEXR's default is 45).
+        previews: also write an 8-bit PNG preview per frame (for inspection only).
         sheet_max_frames: frames shown on a contact sheet (evenly spaced; key frames kept
             first when thinning).
         sheet_columns: thumbnails per row of a contact sheet.
@@ -60,7 +67,9 @@ class RenderOptions:
     max_side: int = 0
     batch: int = 8
     background: str = "auto"
-    previews: bool = True
+    compression: str = "dwaa"
+    dwa_level: float = 45.0
+    previews: bool = False
     sheet_max_frames: int = 48
     sheet_columns: int = 8
     sheet_thumb_side: int = 160
@@ -72,6 +81,11 @@ class RenderOptions:
             raise ValueError("batch must be >= 1")
         if self.background not in ("auto", "black", "white"):
             raise ValueError(f"background must be auto, black or white, not {self.background!r}")
+        if self.compression not in FRAME_COMPRESSIONS:
+            raise ValueError(f"compression must be one of {', '.join(FRAME_COMPRESSIONS)}, "
+                             f"not {self.compression!r}")
+        if not self.dwa_level > 0:
+            raise ValueError("dwa_level must be > 0")
         if self.sheet_max_frames < 1 or self.sheet_columns < 1 or self.sheet_thumb_side < 8:
             raise ValueError("sheet_max_frames and sheet_columns must be >= 1, "
                              "sheet_thumb_side >= 8")
@@ -203,65 +217,74 @@ def render_sequences(model_path: str | os.PathLike, poses_json: str | os.PathLik
              ", ".join(f"{p}: {len(c)} x 2 times" for p, c in cams.items()), ref.width,
              ref.height, dev)
     key_psnr: dict[str, dict[str, float]] = {}
+    keys = {p: [c.image is not None for c in cl] for p, cl in cams.items()}
+    for p, cl in cams.items():
+        index["paths"][p] = {"set": cl[0].set, "frames": [
+            {"index": i, "key": k, "image": c.image if k else None, "c2w": c.c2w.tolist()}
+            for i, (c, k) in enumerate(zip(cl, keys[p]))]}
+    seconds = {"model": 0.0, "raster": 0.0, "write": 0.0}
     bar = progress(total=total, desc="render", unit="frame")
     try:
-        for p, cl in cams.items():
-            keys = [c.image is not None for c in cl]
-            entry = {"set": cl[0].set,
-                     "frames": [{"index": i, "key": k, "image": c.image if k else None,
-                                 "c2w": c.c2w.tolist()} for i, (c, k) in enumerate(zip(cl, keys))]}
-            show = set(sheet_indices(keys, opts.sheet_max_frames))
-            for tn, t in TIMES.items():
+        for tn, t in TIMES.items():
+            tic = time.perf_counter()
+            with torch.no_grad():
+                g = model.at_time(t)  # once per time, shared by both paths
+            seconds["model"] += time.perf_counter() - tic
+            for p, cl in cams.items():
+                show = set(sheet_indices(keys[p], opts.sheet_max_frames))
                 folder = out / p / tn
                 folder.mkdir(parents=True, exist_ok=True)
                 for stale in list(folder.glob("*.exr")) + list(folder.glob("*.png")):
                     stale.unlink()
                 thumbs, labels, tkeys = [], [], []
                 exr_files, png_files = [], []
-                with torch.no_grad():
-                    g = model.at_time(t)
-                    for s in range(0, len(cl), opts.batch):
-                        chunk = cl[s:s + opts.batch]
+                for s in range(0, len(cl), opts.batch):
+                    chunk = cl[s:s + opts.batch]
+                    tic = time.perf_counter()
+                    with torch.no_grad():
                         r = render(model, chunk, t, background=bg, render_mode="RGB+ED",
                                    gaussians=g, chunk=opts.batch)
-                        rgb = r["rgb"].clamp_min(0).cpu().numpy()
-                        alpha = r["alpha"].cpu().numpy()
-                        depth = r["depth"].cpu().numpy()
-                        for j, cam in enumerate(chunk):
-                            i = s + j
-                            name = f"{i:05d}"
-                            attrs = {"worldToCamera": cam.w2c.astype(np.float32),
-                                     "gdiff_path": p, "gdiff_time": float(t),
-                                     "gdiff_frame": i}
-                            write_frame(folder / f"{name}.exr", rgb[j], alpha[j], depth[j],
-                                        attributes=attrs)
-                            exr_files.append(f"{p}/{tn}/{name}.exr")
-                            preview = np.clip(rgb[j], 0.0, 1.0)
-                            if opts.previews:
-                                write_image(folder / f"{name}.png", preview)
-                                png_files.append(f"{p}/{tn}/{name}.png")
-                            if i in show:
-                                thumbs.append(_thumb(preview, opts.sheet_thumb_side))
-                                labels.append(f"{i}" + (f" {Path(cam.image).stem}"
-                                                        if cam.image else ""))
-                                tkeys.append(keys[i])
-                            if scene_dir is not None and keys[i] and KEY_SET[p][0] == tn:
-                                photo = read_image(photo_root / cam.image)
-                                if photo.shape[:2] != preview.shape[:2]:
-                                    photo = cv2.resize(photo, preview.shape[1::-1],
-                                                       interpolation=cv2.INTER_AREA)
-                                key_psnr.setdefault(p, {})[cam.image] = psnr(preview, photo)
-                        bar.update(len(chunk))
+                    rgb = r["rgb"].clamp_min(0).cpu().numpy()
+                    alpha = r["alpha"].cpu().numpy()
+                    depth = r["depth"].cpu().numpy()
+                    seconds["raster"] += time.perf_counter() - tic
+                    tic = time.perf_counter()
+                    for j, cam in enumerate(chunk):
+                        i = s + j
+                        name = f"{i:05d}"
+                        attrs = {"worldToCamera": cam.w2c.astype(np.float32),
+                                 "gdiff_path": p, "gdiff_time": float(t), "gdiff_frame": i}
+                        write_frame(folder / f"{name}.exr", rgb[j], alpha[j], depth[j],
+                                    attributes=attrs, compression=opts.compression,
+                                    dwa_level=opts.dwa_level)
+                        exr_files.append(f"{p}/{tn}/{name}.exr")
+                        preview = np.clip(rgb[j], 0.0, 1.0)
+                        if opts.previews:
+                            write_image(folder / f"{name}.png", preview)
+                            png_files.append(f"{p}/{tn}/{name}.png")
+                        if i in show:
+                            thumbs.append(_thumb(preview, opts.sheet_thumb_side))
+                            labels.append(f"{i}" + (f" {Path(cam.image).stem}"
+                                                    if cam.image else ""))
+                            tkeys.append(keys[p][i])
+                        if scene_dir is not None and keys[p][i] and KEY_SET[p][0] == tn:
+                            photo = read_image(photo_root / cam.image)
+                            if photo.shape[:2] != preview.shape[:2]:
+                                photo = cv2.resize(photo, preview.shape[1::-1],
+                                                   interpolation=cv2.INTER_AREA)
+                            key_psnr.setdefault(p, {})[cam.image] = psnr(preview, photo)
+                    seconds["write"] += time.perf_counter() - tic
+                    bar.update(len(chunk))
                 sheet = out / p / f"{tn}_sheet.png"
                 write_image(sheet, contact_sheet(thumbs, labels, tkeys, opts.sheet_columns))
-                entry[tn] = {"time": t, "exr": exr_files, "png": png_files,
-                             "sheet": f"{p}/{tn}_sheet.png"}
-            index["paths"][p] = entry
+                index["paths"][p][tn] = {"time": t, "exr": exr_files, "png": png_files,
+                                         "sheet": f"{p}/{tn}_sheet.png"}
     finally:
         bar.close()
     summary = {"frames": {p: len(c) for p, c in cams.items()},
                "width": ref.width, "height": ref.height,
-               "seconds": round(time.time() - t_start, 2)}
+               "seconds": round(time.time() - t_start, 2),
+               **{f"seconds_{k}": round(v, 2) for k, v in seconds.items()}}
     if key_psnr:
         index["key_psnr"] = key_psnr
         for p, d in key_psnr.items():

@@ -10,7 +10,7 @@ import pytest
 
 from gdiff import synth
 from gdiff.change import CompareOptions, change_masks, decide, detect_changes_pair, pose_stats
-from gdiff.io import read_ids, read_mask, srgb_to_linear
+from gdiff.io import read_ids, read_image, read_mask, srgb_to_linear
 from gdiff.segment import SegmentOptions, make_segmenter
 from gdiff.segtrack import compare, compare_paths, segment_and_track, track_paths
 from gdiff.track import TrackOptions, world_points
@@ -138,7 +138,7 @@ def test_stage_files(demo_paths, tmp_path):
     assert out["frames"] == 2 * n
     ids = read_ids(res / "instances" / "p1" / "t1" / "00002.png")
     assert ids.shape == (cam0.height, cam0.width) and ids.max() > 0
-    assert (res / "instances" / "overlay" / "p1" / "t0" / "00000.jpg").exists()
+    assert not (res / "instances" / "overlay").exists()  # debug overlays are opt-in
     assert set(pd.read_csv(res / "instances" / "tracks.csv").columns) >= {"id", "first", "last"}
     summary = compare(res / "instances", res / "sequence" / "poses.json", res / "change",
                       CompareOptions())
@@ -152,6 +152,16 @@ def test_stage_files(demo_paths, tmp_path):
                               | read_mask(res / kf["mask_t1"].iloc[1]))).all()
     ch = pd.read_csv(res / "change" / "changes.csv")
     assert set(ch["type"]) <= {"added", "removed", "moved"} and len(ch) == summary["changed"]
+    # overlays on request: one per frame, the same IDs; a later run without them removes them
+    inst2 = res / "instances_overlays"
+    segment_and_track(res / "render", res / "sequence" / "poses.json", inst2,
+                      SegmentOptions(overlays=True), TrackOptions())
+    over = sorted((inst2 / "overlay").rglob("*.jpg"))
+    assert len(over) == 2 * n and read_image(over[0]).shape == (cam0.height, cam0.width, 3)
+    assert np.array_equal(read_ids(inst2 / "p1" / "t1" / "00002.png"), ids)
+    segment_and_track(res / "render", res / "sequence" / "poses.json", inst2, SegmentOptions(),
+                      TrackOptions())
+    assert not (inst2 / "overlay").exists()
 
 
 # ------------------------------------------------------------------------------------------

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from gdiff.errors import SceneError
-from gdiff.exr import read_exr, read_frame, write_exr, write_frame
+from gdiff.exr import FRAME_COMPRESSIONS, read_exr, read_frame, write_exr, write_frame
 from gdiff.io import srgb_to_linear
 
 
@@ -108,3 +108,50 @@ def test_read_frame_requires_all_channels(tmp_path):
     write_exr(tmp_path / "x.exr", {"R": np.zeros((2, 2), np.float16)})
     with pytest.raises(SceneError, match="lacks channel"):
         read_frame(tmp_path / "x.exr")
+
+
+@pytest.fixture(scope="module")
+def rendered_frame(synth_tiny_scene):
+    """A ground-truth render of the tiny synthetic scene: sRGB colour, alpha, z-depth."""
+    cam = synth_tiny_scene.cameras("before")[0]
+    r = synth_tiny_scene.render(cam, "before", supersample=1)
+    alpha = np.ones(r["depth"].shape, np.float32)
+    alpha[:, :7] = np.linspace(0, 1, 7, dtype=np.float32)  # a soft edge, as a render has
+    return r["rgb"].astype(np.float32), alpha, r["depth"].astype(np.float32)
+
+
+@pytest.mark.parametrize("compression", sorted(FRAME_COMPRESSIONS))
+def test_frame_compressions_read_back_within_stored_precision(tmp_path, rendered_frame,
+                                                              compression):
+    rgb, alpha, depth = rendered_frame
+    write_frame(tmp_path / "none.exr", rgb, alpha, depth, compression="none")
+    write_frame(tmp_path / "c.exr", rgb, alpha, depth, compression=compression.upper(),
+                dwa_level=45.0)
+    ref, c = read_exr(tmp_path / "none.exr"), read_exr(tmp_path / "c.exr", with_header=True)
+    ch, header = c
+    # alpha (half) and depth (float32) are bit-exact with every frame compression
+    assert ch["A"].dtype == np.float16 and np.array_equal(ch["A"], ref["A"])
+    assert ch["Z"].dtype == np.float32 and np.array_equal(ch["Z"], ref["Z"])
+    assert np.array_equal(ch["Z"], depth)
+    rgb2, _, _ = read_frame(tmp_path / "c.exr")
+    if FRAME_COMPRESSIONS[compression]:  # lossless: the stored half colour exactly
+        assert all(np.array_equal(ch[k], ref[k]) for k in "RGB")
+    else:  # DWA: close to the stored colour (mean well below one 8-bit step)
+        err = np.abs(np.clip(rgb2, 0, 1) - np.clip(rgb, 0, 1))
+        assert err.mean() < 0.5 / 255 and np.quantile(err, 0.99) < 3 / 255, err.max()
+    assert str(header["compression"]).upper().endswith(
+        "NO_COMPRESSION" if compression == "none" else f"{compression.upper()}_COMPRESSION")
+    if compression != "none":
+        assert (tmp_path / "c.exr").stat().st_size < (tmp_path / "none.exr").stat().st_size
+
+
+def test_frame_compression_sizes_rank(tmp_path, rendered_frame):
+    """Lossy colour (DWA) is smaller than the lossless codecs on a rendered frame."""
+    rgb, alpha, depth = rendered_frame
+    size = {}
+    for c in ("zip", "piz", "dwaa"):
+        write_frame(tmp_path / f"{c}.exr", rgb, alpha, depth, compression=c)
+        size[c] = (tmp_path / f"{c}.exr").stat().st_size
+    assert size["dwaa"] < min(size["zip"], size["piz"])
+    with pytest.raises(ValueError, match="compression must be one of"):
+        write_frame(tmp_path / "x.exr", rgb, alpha, depth, compression="pxr24")

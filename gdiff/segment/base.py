@@ -87,6 +87,9 @@ class SegmentOptions:
     backend: ``geometric`` (weight-free, default) or ``sam`` (needs the two ONNX files).
     min_region_area: instances smaller than this many pixels are dropped (both backends).
     alpha_min: pixels with rendered alpha below this are background (no instance).
+    overlays: also write a colour overlay of the IDs on each frame
+        (``instances/overlay/<path>/<t>/NNNNN.jpg``, for inspection; nothing downstream reads
+        them).
 
     ``geometric`` backend (gdiff/segment/geometric.py)
     ---------------------------------------------------
@@ -116,6 +119,7 @@ class SegmentOptions:
     backend: str = "geometric"
     min_region_area: int = 64
     alpha_min: float = 0.5
+    overlays: bool = False
     # geometric
     depth_edge_rel: float = 0.04
     normal_edge_deg: float = 35.0

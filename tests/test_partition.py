@@ -194,6 +194,42 @@ def test_cached_blend_weights_reproduce_the_rasterizer():
     np.testing.assert_allclose(z, zref, atol=5e-5)
 
 
+def test_compact_blend_weights_equal_the_exact_ones():
+    """Row bands (bounded memory) give the same weights as one pass; float16 weights and
+    dropping each pixel's faintest pairs up to a tolerance keep the blend within their bounds
+    and shrink the cache."""
+    from gdiff.partition import blend_weights, render_blended, render_features
+
+    rng = np.random.default_rng(5)
+    n = 400
+    model = _static_model(rng.normal(scale=0.3, size=(n, 3)), rng.random((n, 3)), opacity=0.8,
+                          scale=0.07)
+    with torch.no_grad():
+        model.splats["opacities"].copy_(torch.tensor(rng.normal(1.0, 1.5, size=n),
+                                                     dtype=torch.float32))
+    cam = _front_camera(48, 36)
+    g = model.at_time(0.0)
+    vals = torch.tensor(rng.normal(scale=3.0, size=n), dtype=torch.float32)
+    with torch.no_grad():
+        ref = render_features(g, vals[:, None], cam, with_rgb=False)["features"][..., 0]
+        exact = blend_weights(g, cam)
+        banded = blend_weights(g, cam, band_pairs=2000)  # many bands of a few rows
+        tol = 1e-3
+        compact = blend_weights(g, cam, tolerance=tol, dtype=torch.float16)
+    assert torch.equal(exact.counts, banded.counts) and torch.equal(exact.gid, banded.gid)
+    np.testing.assert_allclose(banded.weight, exact.weight, rtol=1e-6, atol=1e-9)
+    np.testing.assert_allclose(banded.alpha, exact.alpha, rtol=1e-6, atol=1e-9)
+    np.testing.assert_allclose(render_blended(exact, vals), ref, atol=2e-5)
+    assert compact.weight.dtype == torch.float16
+    np.testing.assert_allclose(compact.alpha, exact.alpha, rtol=1e-6, atol=1e-9)
+    assert len(compact.gid) < 0.9 * len(exact.gid)  # faint pairs behind surfaces dropped
+    assert compact.nbytes < 0.7 * exact.nbytes
+    # error <= dropped weight (<= tol) x max |value| + float16 rounding of the kept weights
+    bound = tol * vals.abs().max() + 2.0 ** -11 * (exact.alpha * vals.abs().max()).reshape(36, 48)
+    err = (render_blended(compact, vals) - ref).abs()
+    assert (err <= bound + 1e-5).all() and err.max() > 0
+
+
 def test_balanced_bce_is_mean_of_per_class_means():
     from gdiff.partition import bce_on_change_logit, changed_fraction
 
@@ -223,9 +259,9 @@ def test_balanced_bce_keeps_minority_gaussians_confident():
 
     def view(obj_pix):  # 100 pixels, one opaque Gaussian each: 1 = object, 0 = background
         gid = [1 if p in obj_pix else 0 for p in range(100)]
-        return BlendWeights(torch.arange(100, dtype=torch.int32),
-                            torch.tensor(gid, dtype=torch.int32), torch.ones(100),
-                            torch.ones(100), 100, 1)
+        return BlendWeights.from_pairs(torch.arange(100, dtype=torch.int32),
+                                       torch.tensor(gid, dtype=torch.int32), torch.ones(100),
+                                       torch.ones(100), 100, 1)
 
     views = [view(range(5)), view(range(10, 20))]
     targets = [torch.zeros(1, 100), torch.zeros(1, 100)]
@@ -260,9 +296,9 @@ def test_ignoring_other_time_pixels_keeps_reused_gaussians_changed():
 
     def view(obj_pix):  # 100 pixels, one opaque Gaussian each: 1 = the object, 0 = table
         gid = [1 if p in obj_pix else 0 for p in range(100)]
-        return BlendWeights(torch.arange(100, dtype=torch.int32),
-                            torch.tensor(gid, dtype=torch.int32), torch.ones(100),
-                            torch.ones(100), 100, 1)
+        return BlendWeights.from_pairs(torch.arange(100, dtype=torch.int32),
+                                       torch.tensor(gid, dtype=torch.int32), torch.ones(100),
+                                       torch.ones(100), 100, 1)
 
     obj = torch.zeros(1, 100)
     obj[0, 40:50] = 1.0
@@ -604,10 +640,10 @@ def test_blend_and_neighbour_gradients_are_reproducible_with_threads():
 
     g = torch.Generator().manual_seed(0)
     n, pairs, side = 20000, 400_000, 200
-    bw = BlendWeights(pix=torch.sort(torch.randint(0, side * side, (pairs,), generator=g))[0].int(),
-                      gid=torch.randint(0, n, (pairs,), generator=g).int(),
-                      weight=torch.rand(pairs, generator=g), alpha=torch.ones(side * side),
-                      width=side, height=side)
+    bw = BlendWeights.from_pairs(pix=torch.randint(0, side * side, (pairs,), generator=g),
+                                 gid=torch.randint(0, n, (pairs,), generator=g).int(),
+                                 weight=torch.rand(pairs, generator=g),
+                                 alpha=torch.ones(side * side), width=side, height=side)
     sample = torch.randint(0, n, (5000,), generator=g)
     nbr = torch.randint(0, n, (5000, 16), generator=g)
     w = torch.randn(side, side, generator=g)

@@ -113,9 +113,33 @@ def test_l3d_propagates_labels_and_reduces_neighbour_disagreement():
 def test_options_validate():
     with pytest.raises(ValueError):
         PartitionOptions(threshold=1.5)
+    assert PartitionOptions(threshold=None).threshold is None  # chosen from the key views
     with pytest.raises(ValueError):
         PartitionOptions(knn_k=0)
     assert PartitionOptions().encoding_dim == 16
+
+
+def test_threshold_chosen_from_key_views_maximises_pooled_f1():
+    """Under-confident maps (changed pixels at 0.32-0.45, background below 0.2): the threshold
+    that best reproduces the masks lies between the two, and its F1 equals a brute-force
+    count; masks without a changed pixel choose nothing."""
+    from gdiff.metrics import confusion, scores_from_counts
+    from gdiff.partition import choose_threshold
+
+    rng = np.random.default_rng(0)
+    masks = [np.zeros((20, 30), bool) for _ in range(3)]
+    masks[0][5:10, 5:12] = masks[2][2:8, 20:28] = True
+    probs = [np.where(m, rng.uniform(0.32, 0.45, m.shape), rng.uniform(0.0, 0.2, m.shape))
+             for m in masks]
+    probs[1][0, 0] = 0.5  # one false positive that a threshold below 0.5 keeps
+    best = choose_threshold(probs, masks)
+    assert 0.2 <= best["threshold"] <= 0.32 and best["f1"] == pytest.approx(1 - 1 / 167)
+    th = best["threshold"]
+    brute = scores_from_counts(*np.sum([confusion(p > th, m) for p, m in zip(probs, masks)], 0))
+    assert best["f1"] == pytest.approx(brute["F1"])
+    assert best["curve"].set_index("threshold").loc[0.5, "F1"] == 0.0
+    none = choose_threshold(probs, [np.zeros_like(m) for m in masks])
+    assert none["threshold"] is None
 
 
 # --------------------------------------------------------------------------- hand-made Gaussians

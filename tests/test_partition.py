@@ -532,6 +532,30 @@ def test_tiny_change_map_at_held_out_views_overlaps_ground_truth(tiny_partition,
     assert 0 < d.max() < 0.05 * fit.meta["extent"]
 
 
+def test_threshold_null_is_chosen_from_the_key_views(tiny_fit, tmp_path):
+    """partition.threshold null: the stage picks the key-view F1 maximum, saves it in the model
+    and threshold.json, and thresholds the key-pose maps with it."""
+    import json
+
+    from gdiff.partition import load_partition_model, train_partition
+
+    res, scene_dir = tiny_fit
+    out = tmp_path / "partition"
+    summary = train_partition(res / "fit" / "model.pt", res / "poses" / "cameras.json",
+                              res / "change" / "keyframes.csv", scene_dir, out,
+                              PartitionOptions(iterations=30, frozen_iterations=20,
+                                               threshold=None), device="cpu")
+    info = json.loads((out / "threshold.json").read_text())
+    th = info["threshold"]
+    assert info["source"] == "max F1 over the key views" and th == info["key_view_best_threshold"]
+    assert 0 < th < 1 and summary["threshold"] == th
+    assert load_partition_model(out / "model.pt", "cpu").threshold == th
+    curve = {r["threshold"]: r["f1"] for r in info["curve"]}
+    assert info["key_view_f1"] == pytest.approx(max(curve.values()))
+    assert info["key_view_f1"] >= info["key_view_f1_at_0.5"]
+    assert (out / "maps" / "union" / "p1_00003.png").is_file()
+
+
 @pytest.mark.parametrize("geometry_lr_scale,frozen_iterations",
                          [(0.0, 4), (1.0, 4), (1.0, 0)], ids=["frozen", "two-phase", "joint"])
 def test_resume_gives_the_same_model_as_an_uninterrupted_run(tiny_fit, tmp_path,

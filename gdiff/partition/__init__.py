@@ -48,10 +48,13 @@ L3d (kNN KL), plus the fit stage's L1 + L_TV when the geometry is fine-tuned too
   1-channel change logit: Gaussians that straddle a changed object's outline adapt (synth
   demo, exact masks, union map F1 at 0.5:
   0.948 frozen throughout, 0.978 two-phase, 0.982 joint throughout at 1.6x the time).
-* Map threshold (``threshold``): by default the probability threshold whose union maps best
-  reproduce the compare stage's union masks at the key views (max pooled F1 over a 0.01
-  grid, :func:`choose_threshold`, after training); a number fixes it. The value, how it was
-  chosen and the key-view F1 curve go to ``partition/threshold.json`` and the log.
+* Map threshold (``threshold``, 0.5 by default): ``None`` takes the probability threshold
+  whose union maps best reproduce the compare stage's union masks at the key views (max
+  pooled F1 over a 0.01 grid, :func:`choose_threshold`, after training). Not the default:
+  where the compare masks are noisy (false changes on poorly fitted surfaces) that threshold
+  follows the noise and the eval-view F1 drops (bench_desk proxy: 0.15 chosen, F1 0.35 ->
+  0.23). The value used, how it was chosen, the key-view best and the key-view F1 curve go to
+  ``partition/threshold.json`` and the log.
 
 Modules: :mod:`.options` (``PartitionOptions``), :mod:`.head` (encodings + 1x1 conv),
 :mod:`.losses` (BCE, L3d), :mod:`.render` (rasterized features, cached blend weights),

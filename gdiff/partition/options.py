@@ -36,9 +36,9 @@ class PartitionOptions:
                                       # training size (cached blend weights: 0.5 = a quarter
                                       # of the pixels, of the memory and of the time per step)
     lambda_tv: float | None = None    # weight of the HexPlane TV; None = the fit stage's value
-    threshold: float | None = None    # probability above which a pixel / Gaussian is "changed";
+    threshold: float | None = 0.5     # probability above which a pixel / Gaussian is "changed";
                                       # None = the one that best reproduces the key-view masks
-                                      # (max F1, written to partition/threshold.json)
+                                      # (max F1; partition/threshold.json has it either way)
     max_side: int | None = None       # longest image side for training; None = the fit's, 0 = full
     checkpoint_every: int = 500       # write a resumable checkpoint every this many steps
     log_every: int = 50               # rows of train_log.csv

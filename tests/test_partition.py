@@ -113,9 +113,33 @@ def test_l3d_propagates_labels_and_reduces_neighbour_disagreement():
 def test_options_validate():
     with pytest.raises(ValueError):
         PartitionOptions(threshold=1.5)
+    assert PartitionOptions(threshold=None).threshold is None  # chosen from the key views
     with pytest.raises(ValueError):
         PartitionOptions(knn_k=0)
     assert PartitionOptions().encoding_dim == 16
+
+
+def test_threshold_chosen_from_key_views_maximises_pooled_f1():
+    """Under-confident maps (changed pixels at 0.32-0.45, background below 0.2): the threshold
+    that best reproduces the masks lies between the two, and its F1 equals a brute-force
+    count; masks without a changed pixel choose nothing."""
+    from gdiff.metrics import confusion, scores_from_counts
+    from gdiff.partition import choose_threshold
+
+    rng = np.random.default_rng(0)
+    masks = [np.zeros((20, 30), bool) for _ in range(3)]
+    masks[0][5:10, 5:12] = masks[2][2:8, 20:28] = True
+    probs = [np.where(m, rng.uniform(0.32, 0.45, m.shape), rng.uniform(0.0, 0.2, m.shape))
+             for m in masks]
+    probs[1][0, 0] = 0.5  # one false positive that a threshold below 0.5 keeps
+    best = choose_threshold(probs, masks)
+    assert 0.2 <= best["threshold"] <= 0.32 and best["f1"] == pytest.approx(1 - 1 / 167)
+    th = best["threshold"]
+    brute = scores_from_counts(*np.sum([confusion(p > th, m) for p, m in zip(probs, masks)], 0))
+    assert best["f1"] == pytest.approx(brute["F1"])
+    assert best["curve"].set_index("threshold").loc[0.5, "F1"] == 0.0
+    none = choose_threshold(probs, [np.zeros_like(m) for m in masks])
+    assert none["threshold"] is None
 
 
 # --------------------------------------------------------------------------- hand-made Gaussians
@@ -194,6 +218,42 @@ def test_cached_blend_weights_reproduce_the_rasterizer():
     np.testing.assert_allclose(z, zref, atol=5e-5)
 
 
+def test_compact_blend_weights_equal_the_exact_ones():
+    """Row bands (bounded memory) give the same weights as one pass; float16 weights and
+    dropping each pixel's faintest pairs up to a tolerance keep the blend within their bounds
+    and shrink the cache."""
+    from gdiff.partition import blend_weights, render_blended, render_features
+
+    rng = np.random.default_rng(5)
+    n = 400
+    model = _static_model(rng.normal(scale=0.3, size=(n, 3)), rng.random((n, 3)), opacity=0.8,
+                          scale=0.07)
+    with torch.no_grad():
+        model.splats["opacities"].copy_(torch.tensor(rng.normal(1.0, 1.5, size=n),
+                                                     dtype=torch.float32))
+    cam = _front_camera(48, 36)
+    g = model.at_time(0.0)
+    vals = torch.tensor(rng.normal(scale=3.0, size=n), dtype=torch.float32)
+    with torch.no_grad():
+        ref = render_features(g, vals[:, None], cam, with_rgb=False)["features"][..., 0]
+        exact = blend_weights(g, cam)
+        banded = blend_weights(g, cam, band_pairs=2000)  # many bands of a few rows
+        tol = 1e-3
+        compact = blend_weights(g, cam, tolerance=tol, dtype=torch.float16)
+    assert torch.equal(exact.counts, banded.counts) and torch.equal(exact.gid, banded.gid)
+    np.testing.assert_allclose(banded.weight, exact.weight, rtol=1e-6, atol=1e-9)
+    np.testing.assert_allclose(banded.alpha, exact.alpha, rtol=1e-6, atol=1e-9)
+    np.testing.assert_allclose(render_blended(exact, vals), ref, atol=2e-5)
+    assert compact.weight.dtype == torch.float16
+    np.testing.assert_allclose(compact.alpha, exact.alpha, rtol=1e-6, atol=1e-9)
+    assert len(compact.gid) < 0.9 * len(exact.gid)  # faint pairs behind surfaces dropped
+    assert compact.nbytes < 0.7 * exact.nbytes
+    # error <= dropped weight (<= tol) x max |value| + float16 rounding of the kept weights
+    bound = tol * vals.abs().max() + 2.0 ** -11 * (exact.alpha * vals.abs().max()).reshape(36, 48)
+    err = (render_blended(compact, vals) - ref).abs()
+    assert (err <= bound + 1e-5).all() and err.max() > 0
+
+
 def test_balanced_bce_is_mean_of_per_class_means():
     from gdiff.partition import bce_on_change_logit, changed_fraction
 
@@ -223,9 +283,9 @@ def test_balanced_bce_keeps_minority_gaussians_confident():
 
     def view(obj_pix):  # 100 pixels, one opaque Gaussian each: 1 = object, 0 = background
         gid = [1 if p in obj_pix else 0 for p in range(100)]
-        return BlendWeights(torch.arange(100, dtype=torch.int32),
-                            torch.tensor(gid, dtype=torch.int32), torch.ones(100),
-                            torch.ones(100), 100, 1)
+        return BlendWeights.from_pairs(torch.arange(100, dtype=torch.int32),
+                                       torch.tensor(gid, dtype=torch.int32), torch.ones(100),
+                                       torch.ones(100), 100, 1)
 
     views = [view(range(5)), view(range(10, 20))]
     targets = [torch.zeros(1, 100), torch.zeros(1, 100)]
@@ -260,9 +320,9 @@ def test_ignoring_other_time_pixels_keeps_reused_gaussians_changed():
 
     def view(obj_pix):  # 100 pixels, one opaque Gaussian each: 1 = the object, 0 = table
         gid = [1 if p in obj_pix else 0 for p in range(100)]
-        return BlendWeights(torch.arange(100, dtype=torch.int32),
-                            torch.tensor(gid, dtype=torch.int32), torch.ones(100),
-                            torch.ones(100), 100, 1)
+        return BlendWeights.from_pairs(torch.arange(100, dtype=torch.int32),
+                                       torch.tensor(gid, dtype=torch.int32), torch.ones(100),
+                                       torch.ones(100), 100, 1)
 
     obj = torch.zeros(1, 100)
     obj[0, 40:50] = 1.0
@@ -472,6 +532,30 @@ def test_tiny_change_map_at_held_out_views_overlaps_ground_truth(tiny_partition,
     assert 0 < d.max() < 0.05 * fit.meta["extent"]
 
 
+def test_threshold_null_is_chosen_from_the_key_views(tiny_fit, tmp_path):
+    """partition.threshold null: the stage picks the key-view F1 maximum, saves it in the model
+    and threshold.json, and thresholds the key-pose maps with it."""
+    import json
+
+    from gdiff.partition import load_partition_model, train_partition
+
+    res, scene_dir = tiny_fit
+    out = tmp_path / "partition"
+    summary = train_partition(res / "fit" / "model.pt", res / "poses" / "cameras.json",
+                              res / "change" / "keyframes.csv", scene_dir, out,
+                              PartitionOptions(iterations=30, frozen_iterations=20,
+                                               threshold=None), device="cpu")
+    info = json.loads((out / "threshold.json").read_text())
+    th = info["threshold"]
+    assert info["source"] == "max F1 over the key views" and th == info["key_view_best_threshold"]
+    assert 0 < th < 1 and summary["threshold"] == th
+    assert load_partition_model(out / "model.pt", "cpu").threshold == th
+    curve = {r["threshold"]: r["f1"] for r in info["curve"]}
+    assert info["key_view_f1"] == pytest.approx(max(curve.values()))
+    assert info["key_view_f1"] >= info["key_view_f1_at_0.5"]
+    assert (out / "maps" / "union" / "p1_00003.png").is_file()
+
+
 @pytest.mark.parametrize("geometry_lr_scale,frozen_iterations",
                          [(0.0, 4), (1.0, 4), (1.0, 0)], ids=["frozen", "two-phase", "joint"])
 def test_resume_gives_the_same_model_as_an_uninterrupted_run(tiny_fit, tmp_path,
@@ -604,10 +688,10 @@ def test_blend_and_neighbour_gradients_are_reproducible_with_threads():
 
     g = torch.Generator().manual_seed(0)
     n, pairs, side = 20000, 400_000, 200
-    bw = BlendWeights(pix=torch.sort(torch.randint(0, side * side, (pairs,), generator=g))[0].int(),
-                      gid=torch.randint(0, n, (pairs,), generator=g).int(),
-                      weight=torch.rand(pairs, generator=g), alpha=torch.ones(side * side),
-                      width=side, height=side)
+    bw = BlendWeights.from_pairs(pix=torch.randint(0, side * side, (pairs,), generator=g),
+                                 gid=torch.randint(0, n, (pairs,), generator=g).int(),
+                                 weight=torch.rand(pairs, generator=g),
+                                 alpha=torch.ones(side * side), width=side, height=side)
     sample = torch.randint(0, n, (5000,), generator=g)
     nbr = torch.randint(0, n, (5000, 16), generator=g)
     w = torch.randn(side, side, generator=g)

@@ -38,11 +38,23 @@ L3d (kNN KL), plus the fit stage's L1 + L_TV when the geometry is fine-tuned too
   once (:func:`blend_weights`, a sparse [H*W, N] matrix) and a step blends one change logit
   per Gaussian (:func:`blended_change_logit`, exact because the head is affine) instead of
   deforming the model and rasterizing colour + encodings forward and backward; L1 and L_TV
-  are constants there. The encodings converge in this phase. The remaining steps fine-tune
-  the fitted Gaussians too (the paper's total loss, at ``geometry_lr_scale`` x the fit's
-  final learning rates), rasterizing colour + the 1-channel change logit: Gaussians that
-  straddle a changed object's outline adapt (synth demo, exact masks, union map F1 at 0.5:
+  are constants there. The encodings converge in this phase. The cache is what bounds the
+  stage's memory, so it is kept compact: key views at ``frozen_scale`` of the training size
+  (targets area-averaged), pairs grouped by pixel (a pair stores an int32 Gaussian index and
+  a float16 weight), a pixel's faintest pairs dropped up to a small total weight, computed in
+  bands of rows (bounded transient memory); it is released before the joint phase. The
+  remaining steps fine-tune the fitted Gaussians too (the paper's total loss, at
+  ``geometry_lr_scale`` x the fit's final learning rates), rasterizing colour + the
+  1-channel change logit: Gaussians that straddle a changed object's outline adapt (synth
+  demo, exact masks, union map F1 at 0.5:
   0.948 frozen throughout, 0.978 two-phase, 0.982 joint throughout at 1.6x the time).
+* Map threshold (``threshold``, 0.5 by default): ``None`` takes the probability threshold
+  whose union maps best reproduce the compare stage's union masks at the key views (max
+  pooled F1 over a 0.01 grid, :func:`choose_threshold`, after training). Not the default:
+  where the compare masks are noisy (false changes on poorly fitted surfaces) that threshold
+  follows the noise and the eval-view F1 drops (bench_desk proxy: 0.15 chosen, F1 0.35 ->
+  0.23). The value used, how it was chosen, the key-view best and the key-view F1 curve go to
+  ``partition/threshold.json`` and the log.
 
 Modules: :mod:`.options` (``PartitionOptions``), :mod:`.head` (encodings + 1x1 conv),
 :mod:`.losses` (BCE, L3d), :mod:`.render` (rasterized features, cached blend weights),
@@ -57,8 +69,8 @@ float32 [H, W] in [0, 1]; masks bool [H, W] (written as 8-bit PNG, 255 = changed
 
 from .cli import change_map_main, pose_from_values
 from .data import KEYFRAME_COLUMNS, KeyView, _load_image, _load_mask, read_key_views
-from .export import (MIN_VISIBLE_OPACITY, overlay, split_gaussians, write_key_maps,
-                     write_split_ply)
+from .export import (MIN_VISIBLE_OPACITY, THRESHOLDS, choose_threshold, key_view_maps, overlay,
+                     split_gaussians, write_key_maps, write_split_ply)
 from .head import CHANGED, UNCHANGED, ChangeHead, change_logit, change_probability
 from .losses import (bce_on_change_logit, changed_fraction, ignore_weight, l3d_step, mask_bce,
                      neighbour_disagreement, neighbour_kl)
@@ -70,9 +82,11 @@ from .render import (BlendWeights, blend_weights, blended_change_logit, change_l
 from .train import fine_tune, run_key, train_partition
 
 __all__ = [
-    "CHANGED", "FORMAT", "KEYFRAME_COLUMNS", "MIN_VISIBLE_OPACITY", "UNCHANGED", "VERSION",
+    "CHANGED", "FORMAT", "KEYFRAME_COLUMNS", "MIN_VISIBLE_OPACITY", "THRESHOLDS", "UNCHANGED",
+    "VERSION",
     "BlendWeights", "ChangeHead", "KeyView", "PartitionModel", "PartitionOptions",
     "bce_on_change_logit", "blend_weights", "blended_change_logit", "change_logit",
+    "choose_threshold", "key_view_maps",
     "change_logit_parts", "change_map_main", "change_probability", "changed_fraction",
     "fine_tune", "ignore_weight", "l3d_step", "load_partition_model", "mask_bce",
     "neighbour_disagreement", "neighbour_kl", "overlay", "partition_blob", "pose_from_values",

@@ -15,7 +15,7 @@ import torch
 
 from ..io import write_image, write_mask
 from ..log import progress
-from ..metrics import pixel_scores
+from ..metrics import pixel_scores, scores_from_counts
 from ..splat.gaussians import Gaussians
 from ..splat.ply import write_gaussians
 from .data import KeyView, _load_image, _load_mask
@@ -75,21 +75,70 @@ def overlay(image: np.ndarray, mask: np.ndarray, colour=(1.0, 0.15, 0.1), alpha:
     return img
 
 
-def write_key_maps(pm: PartitionModel, views: list[KeyView], maps_dir):
+def key_view_maps(pm: PartitionModel, views: list[KeyView]) -> list[dict]:
+    """Change probabilities at every key pose: per view a dict ``prob_t0``, ``prob_t1`` and
+    ``prob`` (their union, the per-pixel max), float32 [H, W] at the view's camera."""
+    out = []
+    for v in progress(views, desc="partition maps"):
+        r = render_change_map(pm, v.camera, None)
+        out.append({k: r[k] for k in ("prob_t0", "prob_t1", "prob")})
+    return out
+
+
+# thresholds tried by choose_threshold: every hundredth in (0, 1)
+THRESHOLDS = np.round(np.arange(0.01, 1.0, 0.01), 2)
+
+
+def choose_threshold(probs, masks, thresholds=THRESHOLDS) -> dict:
+    """The probability threshold that best reproduces the training masks.
+
+    Pools the pixels of every key view: ``probs`` (iterable of [H, W] change probabilities,
+    e.g. the union maps of :func:`key_view_maps`) against ``masks`` (bool [H, W], e.g. the
+    compare stage's union masks), and takes the threshold of largest F1 (``prob > th`` is
+    changed); ties go to the one nearest 0.5.
+
+    Returns dict ``threshold`` (None when the masks have no changed or no unchanged pixel: F1
+    says nothing then), ``f1`` (at it) and ``curve`` (DataFrame: threshold, P, R, F1, IoU).
+    """
+    pos, neg = [], []
+    for p, m in zip(probs, masks):
+        p, m = np.asarray(p, np.float32).ravel(), np.asarray(m, bool).ravel()
+        pos.append(p[m])
+        neg.append(p[~m])
+    pos, neg = np.sort(np.concatenate(pos)), np.sort(np.concatenate(neg))
+    th = np.asarray(thresholds, np.float64)
+    tp = len(pos) - np.searchsorted(pos, th, side="right")   # prob > th
+    fp = len(neg) - np.searchsorted(neg, th, side="right")
+    fn = len(pos) - tp
+    rows = [{"threshold": float(t), **scores_from_counts(a, b, c)}
+            for t, a, b, c in zip(th, tp, fp, fn)]
+    curve = pd.DataFrame(rows)
+    if len(pos) == 0 or len(neg) == 0:
+        return {"threshold": None, "f1": float("nan"), "curve": curve}
+    f1 = curve["F1"].fillna(0.0).to_numpy()
+    best = np.flatnonzero(f1 == f1.max())
+    i = best[np.argmin(np.abs(th[best] - 0.5))]
+    return {"threshold": float(th[i]), "f1": float(f1[i]), "curve": curve}
+
+
+def write_key_maps(pm: PartitionModel, views: list[KeyView], maps_dir,
+                   maps: list[dict] | None = None):
     """Render change maps at every key pose and score them against the compare-stage masks.
 
     Writes, per key view ``<name>`` (``<path>_<frame>``): ``maps/{t0,t1,union}/<name>.png``
-    (binary masks, 255 = changed), ``maps/{t0,t1,union}_prob/<name>.png`` (probability x 255)
-    and ``maps/overlay/<name>.png`` (the photo with the union map in red and the compare
-    stage's union mask outlined in green). Returns a DataFrame with one row per view: name,
-    time, IoU of the map at the photo's time vs its target (``iou_own_time``) and of the union
-    map vs ``mask_union`` (``iou_union``), plus pixel F1 of the union.
+    (binary masks at ``pm.threshold``, 255 = changed), ``maps/{t0,t1,union}_prob/<name>.png``
+    (probability x 255) and ``maps/overlay/<name>.png`` (the photo with the union map in red
+    and the compare stage's union mask outlined in green). ``maps``: the views'
+    :func:`key_view_maps` when already rendered. Returns a DataFrame with one row per view:
+    name, time, IoU of the map at the photo's time vs its target (``iou_own_time``) and of the
+    union map vs ``mask_union`` (``iou_union``), plus pixel F1 of the union.
     """
     maps_dir = Path(maps_dir)
+    maps = key_view_maps(pm, views) if maps is None else maps
     rows = []
-    for v in progress(views, desc="partition maps"):
-        r = render_change_map(pm, v.camera, None)
-        th = pm.threshold
+    th = pm.threshold
+    for v, r in zip(views, maps):
+        union = r["prob"] > th
         for key, p in (("t0", r["prob_t0"]), ("t1", r["prob_t1"]), ("union", r["prob"])):
             write_mask(maps_dir / key / f"{v.name}.png", p > th)
             write_image(maps_dir / f"{key}_prob" / f"{v.name}.png",
@@ -98,9 +147,9 @@ def write_key_maps(pm: PartitionModel, views: list[KeyView], maps_dir):
         union_t = _load_mask(v.masks["union"], v.camera) > 0.5
         photo = _load_image(v.image, v.camera)
         write_image(maps_dir / "overlay" / f"{v.name}.png",
-                    overlay(photo, r["mask"], outline=union_t))
+                    overlay(photo, union, outline=union_t))
         own_pred = r[f"prob_t{int(v.time)}"] > th
-        s_own, s_union = pixel_scores(own_pred, own), pixel_scores(r["mask"], union_t)
+        s_own, s_union = pixel_scores(own_pred, own), pixel_scores(union, union_t)
         rows.append({"name": v.name, "image": str(v.image), "time": v.time,
                      "iou_own_time": s_own["IoU"], "iou_union": s_union["IoU"],
                      "f1_union": s_union["F1"]})

@@ -32,8 +32,13 @@ class PartitionOptions:
                                       # weights: fast); later steps also fine-tune them with
                                       # L1 + L_TV (render every step). >= iterations or
                                       # geometry_lr_scale 0 = frozen throughout
+    frozen_scale: float = 0.5         # size of the key views in the frozen phase relative to the
+                                      # training size (cached blend weights: 0.5 = a quarter
+                                      # of the pixels, of the memory and of the time per step)
     lambda_tv: float | None = None    # weight of the HexPlane TV; None = the fit stage's value
-    threshold: float = 0.5            # probability above which a pixel / Gaussian is "changed"
+    threshold: float | None = 0.5     # probability above which a pixel / Gaussian is "changed";
+                                      # None = the one that best reproduces the key-view masks
+                                      # (max F1; partition/threshold.json has it either way)
     max_side: int | None = None       # longest image side for training; None = the fit's, 0 = full
     checkpoint_every: int = 500       # write a resumable checkpoint every this many steps
     log_every: int = 50               # rows of train_log.csv
@@ -48,13 +53,16 @@ class PartitionOptions:
             raise ValueError("knn_k and knn_samples must be >= 1")
         if self.l3d_every < 1 or self.knn_refresh < 1:
             raise ValueError("l3d_every and knn_refresh must be >= 1")
-        if not 0.0 < self.threshold < 1.0:
-            raise ValueError("threshold must lie in (0, 1)")
+        if self.threshold is not None and not 0.0 < self.threshold < 1.0:
+            raise ValueError("threshold must lie in (0, 1), or be null (chosen from the key "
+                             "views)")
         if self.lambda_2d < 0 or self.lambda_3d < 0:
             raise ValueError("lambda_2d and lambda_3d must be >= 0")
         if self.max_side is not None and self.max_side < 0:
             raise ValueError("max_side must be >= 0 (0 = full resolution)")
         if self.frozen_iterations < 0 or self.geometry_lr_scale < 0:
             raise ValueError("frozen_iterations and geometry_lr_scale must be >= 0")
+        if not 0.0 < self.frozen_scale <= 1.0:
+            raise ValueError("frozen_scale must lie in (0, 1]")
         if self.checkpoint_every < 1 or self.log_every < 1:
             raise ValueError("checkpoint_every and log_every must be >= 1")

@@ -9,6 +9,7 @@ from __future__ import annotations
 import dataclasses
 import hashlib
 import logging
+import resource
 import shutil
 import time as _time
 from pathlib import Path
@@ -23,12 +24,13 @@ from ..errors import TrainingError
 from ..io import atomic_path, write_csv, write_json
 from ..knn import NeighbourIndex
 from ..log import progress
+from ..metrics import confusion, scores_from_counts
 from ..splat.gaussians import camera_extent
 from ..splat.losses import l1
 from ..splat.model import load_model
 from ..splat.train import FitOptions
 from .data import _load_image, _load_mask, read_key_views
-from .export import write_key_maps, write_split_ply
+from .export import choose_threshold, key_view_maps, write_key_maps, write_split_ply
 from .head import ChangeHead
 from .losses import bce_on_change_logit, changed_fraction, ignore_weight, neighbour_kl
 from .model import PartitionModel, partition_blob, save_partition_model
@@ -96,7 +98,7 @@ def _latest_checkpoint(ckdir):
 
 
 # options that do not change the result: a checkpoint stays valid when they differ
-_NON_RESULT_OPTIONS = ("iterations", "checkpoint_every", "log_every")
+_NON_RESULT_OPTIONS = ("iterations", "checkpoint_every", "log_every", "threshold")
 
 
 def run_key(opts: PartitionOptions, **inputs) -> dict:
@@ -183,8 +185,9 @@ def fine_tune(pm: PartitionModel, data: list[dict], opts: PartitionOptions, ckdi
                                      [v.get("weight") for v in data])
                     if opts.balance_classes else None)
     opt = torch.optim.Adam(_param_groups(pm, opts, extent), eps=1e-15)
+    frozen_g = weights = None
     if start < frozen_until:
-        frozen_g, weights = _cache_weights(pm, data)
+        frozen_g, weights = _cache_weights(pm, data, opts.frozen_scale)
     if ck is not None:
         opt.load_state_dict(blob["optimizer"])
     last_ck = str(ck) if ck is not None else "none"
@@ -194,10 +197,14 @@ def fine_tune(pm: PartitionModel, data: list[dict], opts: PartitionOptions, ckdi
                        total=opts.iterations):
         vi = int(_view_rng(opts.seed, it, 0).integers(len(data)))
         v = data[vi]
+        if it == frozen_until and weights is not None:  # the cache is not needed any more
+            frozen_g = weights = None
+            _log_phase("frozen phase", it - start)
         if it < frozen_until:
             g = frozen_g[float(v["time"])]
-            z = blended_change_logit(pm.head, weights[vi])
-            loss_bce = bce_on_change_logit(z, v["target"], pos_fraction, v.get("weight"))
+            bw, target, weight = weights[vi]
+            z = blended_change_logit(pm.head, bw)
+            loss_bce = bce_on_change_logit(z, target, pos_fraction, weight)
             loss_l1 = loss_tv = loss_bce.new_full((), float("nan"))  # constants: not computed
             loss = opts.lambda_2d * loss_bce
         else:
@@ -240,21 +247,52 @@ def fine_tune(pm: PartitionModel, data: list[dict], opts: PartitionOptions, ckdi
         if ckdir is not None and (done % opts.checkpoint_every == 0 or done == opts.iterations):
             _save_checkpoint(ckdir, done, pm, opt, index, rows, opts, key)
             last_ck = str(Path(ckdir) / f"ckpt_{done:06d}.pt")
+    frozen_g = weights = None
+    _log_phase("training", opts.iterations - start)
     pm.eval()
     return rows
 
 
-def _cache_weights(pm: PartitionModel, data: list[dict]):
-    """Frozen geometry: the activated Gaussians per training time (no grad) and the
-    :class:`BlendWeights` of every view in ``data`` (same order)."""
+# Per pixel, cached blend weights whose sum stays below this are dropped (the faint pairs behind
+# an opaque surface, most of a pixel's pairs): a blended change logit moves by at most this
+# fraction of the largest dropped per-Gaussian logit. Weights are stored as float16.
+CACHE_TOLERANCE = 1e-3
+
+
+def _cache_weights(pm: PartitionModel, data: list[dict], scale: float = 1.0):
+    """Frozen geometry: the activated Gaussians per training time (no grad) and, for every view
+    in ``data`` (same order), ``(BlendWeights, target, weight)`` with the camera, target and
+    BCE weight resized by ``scale`` (area averaging: soft targets at the edges); the weights
+    are float16, faint pairs dropped up to :data:`CACHE_TOLERANCE` per pixel."""
     t0 = _time.perf_counter()
     with torch.no_grad():
         gs = {t: pm.fit.at_time(t) for t in sorted({float(v["time"]) for v in data})}
-    weights = [blend_weights(gs[float(v["time"])], v["camera"])
-               for v in progress(data, desc="partition weights")]
-    log.info("blend weights of %d views: %.0f MB, %.1f s", len(data),
-             sum(w.nbytes for w in weights) / 2**20, _time.perf_counter() - t0)
-    return gs, weights
+    out = []
+    for v in progress(data, desc="partition weights"):
+        cam = v["camera"] if scale == 1.0 else v["camera"].scaled(scale)
+        bw = blend_weights(gs[float(v["time"])], cam, tolerance=CACHE_TOLERANCE,
+                           dtype=torch.float16)
+        out.append((bw, _resized(v["target"], cam), _resized(v.get("weight"), cam)))
+    log.info("blend weights of %d views at %dx%d: %d pairs, %.0f MB, %.1f s", len(data),
+             out[0][0].width, out[0][0].height, sum(len(w[0].gid) for w in out),
+             sum(w[0].nbytes for w in out) / 2**20, _time.perf_counter() - t0)
+    _log_phase("blend weights", len(data))
+    return gs, out
+
+
+def _resized(x: torch.Tensor | None, cam) -> torch.Tensor | None:
+    """[H, W] map resized to the camera's size by area averaging (None stays None)."""
+    if x is None or tuple(x.shape) == (cam.height, cam.width):
+        return x
+    return torch.nn.functional.interpolate(x[None, None], size=(cam.height, cam.width),
+                                           mode="area")[0, 0]
+
+
+def _log_phase(name: str, steps: int) -> None:
+    """Log the process's CPU seconds (user + system, all threads) and peak RSS so far."""
+    ru = resource.getrusage(resource.RUSAGE_SELF)
+    log.info("%s done (%d steps): CPU %.1f s so far, peak RSS %.0f MB", name, steps,
+             ru.ru_utime + ru.ru_stime, ru.ru_maxrss / 1024)
 
 
 def _load_state(pm: PartitionModel, blob: dict) -> None:
@@ -305,7 +343,8 @@ def train_partition(fit_model_path, cameras_json, keyframes_csv, scene_dir, out_
     bg = [1.0, 1.0, 1.0] if fo["background"] == "white" else None  # random/black: black
     meta = getattr(fit, "meta", None) or {}
     cam0 = Camera(**meta["camera"]) if "camera" in meta else views[0].camera.with_pose(np.eye(4))
-    pm = PartitionModel(fit, head, cam0, bg, opts.threshold).to(dev)
+    pm = PartitionModel(fit, head, cam0, bg, 0.5 if opts.threshold is None else opts.threshold
+                        ).to(dev)
     extent = float(meta.get("extent") or camera_extent(
         np.stack([v.camera.center for v in views])))
     log.info("partition: %d Gaussians, %d key views, %d iterations on %s", len(fit), len(views),
@@ -314,16 +353,19 @@ def train_partition(fit_model_path, cameras_json, keyframes_csv, scene_dir, out_
                   cameras=_sha1(cameras_json))
     rows = fine_tune(pm, data, opts, out / "ckpt", extent, key)
     t_train = _time.perf_counter() - t_start
+    maps = key_view_maps(pm, views)
+    pm.threshold = _pick_threshold(opts, views, maps, out / "threshold.json")
     save_partition_model(pm, out / "model.pt", opts)
     write_csv(out / "train_log.csv", pd.DataFrame(rows))
     prob = pm.gaussian_probability().detach().cpu().numpy().astype(np.float32)
     with atomic_path(out / "probability.npy") as tmp:
         np.save(tmp, prob)
-    counts = write_split_ply(pm, out, opts.threshold)
-    scores = write_key_maps(pm, views, out / "maps")
+    counts = write_split_ply(pm, out, pm.threshold)
+    scores = write_key_maps(pm, views, out / "maps", maps)
+    del maps
     write_csv(out / "keypose_scores.csv", scores)
     summary = {"gaussians": len(fit), **counts, "key_views": len(views),
-               "iterations": opts.iterations,
+               "iterations": opts.iterations, "threshold": pm.threshold,
                "keypose_iou_own_time": float(np.nanmean(scores["iou_own_time"])),
                "keypose_iou_union": float(np.nanmean(scores["iou_union"])),
                "seconds_train": t_train, "seconds_total": _time.perf_counter() - t_start}
@@ -331,6 +373,36 @@ def train_partition(fit_model_path, cameras_json, keyframes_csv, scene_dir, out_
     shutil.rmtree(out / "ckpt", ignore_errors=True)  # finished: nothing to resume
     log.info("partition done: %s", summary)
     return summary
+
+
+def _pick_threshold(opts: PartitionOptions, views, maps, path) -> float:
+    """The map threshold: ``opts.threshold`` when set, else the one whose union maps best
+    reproduce the compare stage's union masks at the key views (max pooled F1,
+    :func:`choose_threshold`). Logs it and writes ``path`` (JSON: the threshold, how it was
+    chosen, the key-view F1 at it and at 0.5, the key-view best and the F1 curve)."""
+    masks = [_load_mask(v.masks["union"], v.camera) > 0.5 for v in views]
+    best = choose_threshold([m["prob"] for m in maps], masks)
+    curve = best["curve"].set_index("threshold")["F1"]
+    if opts.threshold is not None:
+        th, source = float(opts.threshold), "fixed (partition.threshold)"
+    elif best["threshold"] is None:
+        th, source = 0.5, "default 0.5 (the key-view masks have no changed or no unchanged pixel)"
+    else:
+        th, source = best["threshold"], "max F1 over the key views"
+
+    def f1_at(x):
+        s = scores_from_counts(*np.sum([confusion(m["prob"] > x, k) for m, k in
+                                        zip(maps, masks)], axis=0))
+        return s["F1"]
+
+    info = {"threshold": th, "source": source, "key_view_f1": f1_at(th),
+            "key_view_f1_at_0.5": f1_at(0.5), "key_view_best_threshold": best["threshold"],
+            "key_view_best_f1": best["f1"],
+            "curve": [{"threshold": float(t), "f1": float(f)} for t, f in curve.items()]}
+    write_json(path, info)
+    log.info("partition threshold %.2f: %s; key-view F1 %.3f (at 0.5: %.3f)", th, source,
+             info["key_view_f1"], info["key_view_f1_at_0.5"])
+    return th
 
 
 def _sha1(path) -> str:

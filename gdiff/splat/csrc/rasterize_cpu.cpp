@@ -80,6 +80,14 @@ inline void box_range(scalar_t m, scalar_t e, int64_t& lo, int64_t& hi) {
   if (std::isnan((double)m) || std::isnan((double)e)) { lo = 1; hi = 0; }
 }
 
+// Largest sigma at which a Gaussian of opacity op can still reach alpha >= 1/255: ln(255 op)
+// (above it op exp(-sigma) < 1/255), with 1e-3 of slack so that the test only skips pixels
+// the exact alpha test would reject anyway; it saves their exp. Negative: no pixel reached.
+template <typename scalar_t>
+inline scalar_t sigma_reach(scalar_t op) {
+  return (scalar_t)(std::log(std::max((double)op, 1e-30) / kAlphaMin) + 1e-3);
+}
+
 struct Bins {
   at::Tensor offsets;  // [C * n_tiles + 1] int64: list of tile t is ids[offsets[t]:offsets[t+1]]
   at::Tensor ids;      // [total] int32 Gaussian index within its camera, in depth order
@@ -181,6 +189,8 @@ std::vector<at::Tensor> forward_impl(const at::Tensor& means2d, const at::Tensor
       y0 = std::max(y0, py0); y1 = std::min(y1, py0 + th - 1);
       if (x0 > x1 || y0 > y1) continue;
       const scalar_t a = Q[g * 3], b = Q[g * 3 + 1], cc = Q[g * 3 + 2], op = O[g];
+      const scalar_t s_max = std::min((scalar_t)kSigmaMax, sigma_reach(op));
+      if (!(s_max >= 0)) continue;
       const scalar_t* col = F + g * D;
       for (int64_t j = y0; j <= y1; ++j) {
         const scalar_t dy = my - ((scalar_t)j + (scalar_t)0.5);
@@ -189,7 +199,7 @@ std::vector<at::Tensor> forward_impl(const at::Tensor& means2d, const at::Tensor
           if (done[q]) continue;
           const scalar_t dx = mx - ((scalar_t)i + (scalar_t)0.5);
           const scalar_t sigma = (scalar_t)0.5 * (a * dx * dx + cc * dy * dy) + b * dx * dy;
-          if (sigma > (scalar_t)kSigmaMax || sigma < 0) continue;
+          if (sigma > s_max || sigma < 0) continue;
           const scalar_t alpha = std::min((scalar_t)kAlphaMax, op * std::exp(-sigma));
           if (alpha < (scalar_t)kAlphaMin) continue;
           const scalar_t nT = T[q] * (1 - alpha);
@@ -278,6 +288,8 @@ std::vector<at::Tensor> backward_impl(
       y0 = std::max(y0, py0); y1 = std::min(y1, py0 + th - 1);
       if (x0 > x1 || y0 > y1) continue;
       const scalar_t a = Q[g * 3], b = Q[g * 3 + 1], cc = Q[g * 3 + 2], op = O[g];
+      const scalar_t s_max = std::min((scalar_t)kSigmaMax, sigma_reach(op));
+      if (!(s_max >= 0)) continue;
       const scalar_t* col = F + g * D;
       scalar_t gm[2] = {0, 0}, gq[3] = {0, 0, 0}, gop = 0, gabs[2] = {0, 0};
       scalar_t* gcol = mine + g * stride + 6;
@@ -288,7 +300,7 @@ std::vector<at::Tensor> backward_impl(
           if (k > lastk[q]) continue;
           const scalar_t dx = mx - ((scalar_t)i + (scalar_t)0.5);
           const scalar_t sigma = (scalar_t)0.5 * (a * dx * dx + cc * dy * dy) + b * dx * dy;
-          if (sigma > (scalar_t)kSigmaMax || sigma < 0) continue;
+          if (sigma > s_max || sigma < 0) continue;
           const scalar_t gauss = std::exp(-sigma);
           const scalar_t raw = op * gauss;
           const scalar_t alpha = std::min((scalar_t)kAlphaMax, raw);

@@ -7,7 +7,6 @@ views; fitted without, the gains are learnt as changes over time.
 """
 
 import dataclasses
-from types import SimpleNamespace
 
 import cv2
 import numpy as np
@@ -15,16 +14,14 @@ import pandas as pd
 import pytest
 import torch
 
-from gdiff.cameras import save_cameras
 from gdiff.io import linear_to_srgb, read_image, srgb_to_linear, write_image
 from gdiff.splat.exposure import ExposureCorrection
 from gdiff.splat.losses import psnr
 from gdiff.splat.model import load_model
-from gdiff.splat.ply import write_points
 from gdiff.splat.render import render
-from gdiff.synth import build_scene, get_preset, make_scene
+from gdiff.synth import get_preset, make_scene
 
-from test_fit import backprojected_points, small_options
+from test_fit import known_inputs, small_options
 
 SEED = 5
 STOPS = 1.0
@@ -60,15 +57,7 @@ def jittered(tmp_path_factory):
             gain = 2.0 ** rng.uniform(-STOPS, STOPS)
             write_image(path, linear_to_srgb(np.clip(srgb_to_linear(read_image(path)) * gain,
                                                      0, 1)))
-    synth = build_scene(preset, SEED)
-    cams = sum((synth.cameras(s) for s in ("before", "after", "eval_before", "eval_after")), [])
-    save_cameras(root / "cameras.json", cams)
-    pb = backprojected_points(synth, synth.cameras("before")[::2], "before")
-    pa = backprojected_points(synth, synth.cameras("after")[::2], "after", seed=1)
-    write_points(root / "points.ply", np.concatenate([pb[0], pa[0]]),
-                 np.concatenate([pb[1], pa[1]]))
-    return SimpleNamespace(root=root, dir=root / "scene", cameras=root / "cameras.json",
-                           points=root / "points.ply", eval=synth.cameras("eval_before"))
+    return known_inputs(root, preset, SEED)
 
 
 def _affine_fit(src: np.ndarray, dst: np.ndarray) -> np.ndarray:
@@ -90,7 +79,7 @@ def _fit_and_score(scene, out, exposure: bool):
     model = load_model(out / "model.pt", "cpu")
     changed, quality = [], []
     with torch.no_grad():
-        for cam in scene.eval:
+        for cam in scene.synth.cameras("eval_before"):
             r0, r1 = (render(model, [cam], t)["rgb"][0].clamp(0, 1).numpy() for t in (0.0, 1.0))
             small = [cv2.resize(r, (cam.width // 4, cam.height // 4), interpolation=cv2.INTER_AREA)
                      for r in (r0, r1)]

@@ -54,7 +54,13 @@ def scene(tmp_path_factory):
     # a global lighting change on top of the object changes: every after image is darker
     for path in sorted((root / "scene").glob("**/after/*.png")):
         write_image(path, read_image(path) * DARKEN)
-    synth = build_scene(preset, SEED)
+    return known_inputs(root, preset, SEED)
+
+
+def known_inputs(root, preset, seed) -> SimpleNamespace:
+    """The fit's inputs for the synth scene in ``root/scene``: ground-truth cameras
+    (``root/cameras.json``) and back-projected points (``root/points.ply``)."""
+    synth = build_scene(preset, seed)
     cams = sum((synth.cameras(s) for s in ("before", "after", "eval_before", "eval_after")), [])
     save_cameras(root / "cameras.json", cams)
     pb = backprojected_points(synth, synth.cameras("before")[::2], "before")

@@ -2,9 +2,9 @@
 
 Usage::
 
-    nice -n 15 python benchmarks/bench.py /work/shared/scenes --synth demo,lightchange \
+    nice -n 15 python benchmarks/bench.py ../shared/scenes --synth demo,lightchange \
         --seeds 0,1,2 --results results_bench [--cores 2] [--jobs 1] [--configfile extra.yaml]
-    python benchmarks/bench.py --no-run --results /work/base/results --out /tmp/bench_base
+    python benchmarks/bench.py --no-run --results results --out /tmp/bench_base
 
 Scenes: every scene folder of ``DIR`` (or the rows of a scenes sheet, overrides kept) plus the
 synthetic presets ``--synth`` at each of ``--seeds`` (scenes ``<preset>_s<seed>``, made by the
@@ -17,7 +17,7 @@ synthetic scenes in ``<results>/resources/synth/``. A rerun continues where the 
 times are comparable) within ``--cores``.
 
 ``--no-run`` only reads: ``--results`` is then either such a working directory or a
-``results/`` folder itself (e.g. /work/base/results).
+``results/`` folder itself (e.g. results).
 
 Prints the table of :mod:`gdiff.bench` (scene x method pooled P / R / F1 / IoU / object recall,
 box recall and the far-from-box fraction where a scene has boxes, means over the seeds of each

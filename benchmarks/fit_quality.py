@@ -1,6 +1,6 @@
 """Quality and wall time of the fit stage on scenes with ground truth.
 
-For each scene (a gdiff scene folder with ``gt_cameras.json``, e.g. /work/shared/scenes/*, or
+For each scene (a gdiff scene folder with ``gt_cameras.json``, e.g. ../shared/scenes/*, or
 ``synth:<preset>`` to generate one): known poses are imported and points triangulated by the
 poses stage (``gdiff.sfm.run_poses``, source known), the 4D model is fitted with
 ``FitOptions`` (defaults, or ``--set key=value`` overrides), then
@@ -18,7 +18,7 @@ poses stage (``gdiff.sfm.run_poses``, source known), the 4D model is fitted with
 
 Usage::
 
-    nice python benchmarks/fit_quality.py synth:demo /work/shared/scenes/bench_desk \
+    nice python benchmarks/fit_quality.py synth:demo ../shared/scenes/bench_desk \
         --out /tmp/fitbench [--set fine_iters=3000 ...] [--threads 2]
 
 Writes ``<out>/<scene>/fit/...``, ``<out>/<scene>/eval_views.csv`` and ``<out>/summary.csv``.

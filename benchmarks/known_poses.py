@@ -6,8 +6,8 @@ how far its poses are from the given ones after a Sim3 alignment).
 
 Usage::
 
-    nice python benchmarks/known_poses.py /work/shared/real/obchange_livingarea \
-        /work/shared/real/obchange_kitchen --out /tmp/known_bench [--colmap] \
+    nice python benchmarks/known_poses.py ../shared/real/obchange_livingarea \
+        ../shared/real/obchange_kitchen --out /tmp/known_bench [--colmap] \
         [--set max_reproj_error=4 ...]
 
 A source folder in the ``tf-yaml`` layout is imported first (``gdiff import tf-yaml``); a

@@ -14,7 +14,7 @@ It prints per view the pairs per pixel, MB and CPU seconds, and the totals extra
 training views (the cache holds every key view at once), plus the largest difference of a
 blended random change logit (|z| ~ 3) between the stage's cache and the exact weights.
 
-    python benchmarks/partition_cache.py /work/base/results/bench_desk --step 10
+    python benchmarks/partition_cache.py results/bench_desk --step 10
 """
 
 from __future__ import annotations

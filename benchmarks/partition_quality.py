@@ -36,7 +36,7 @@ two-phase 400 + 200 (default)               0.978 / 0.958    0.987 / 0.975
 Usage::
 
     python benchmarks/partition_quality.py --scene synth:demo --targets oracle --work /tmp/pq
-    python benchmarks/partition_quality.py --scene /work/shared/scenes/bench_desk \
+    python benchmarks/partition_quality.py --scene ../shared/scenes/bench_desk \
         --targets pair --work /tmp/pq
 
 Writes ``<work>/<name>/quality_<targets><tag>.json`` and prints it. Timings are wall-clock seconds.

@@ -23,7 +23,7 @@ Walls and ceiling do not cast shadows (the sun shines "through" them, as in the 
 the table and the objects do.
 
 :func:`make_scene` writes a gdiff scene folder with the layout of the shared scenes (see
-``/work/shared/scenes/README.md``)::
+``../shared/scenes/README.md``)::
 
     before/NNN.png after/NNN.png eval/before/NNN.png eval/after/NNN.png
     eval/masks/NNN.png eval/mask_before/NNN.png eval/mask_after/NNN.png

@@ -14,6 +14,11 @@ A scene folder holds::
     cameras.json | transforms.json
                                 optional known poses (else COLMAP registers the images)
 
+Instead of the photos of ``before/`` or ``after/``, a set may be a video: ``before.mp4`` (any
+of :data:`gdiff.video.VIDEO_EXTENSIONS`) or one video inside ``before/``. The manifest stage
+(:func:`write_manifest`) turns it into photos under ``results/<scene>/input/images/`` (see
+:mod:`gdiff.video`).
+
 The ``scenes`` config key names what to run on (see :func:`discover_scenes`):
 
 * ``synth:<preset>`` — a built-in synthetic scene that the workflow generates itself
@@ -72,7 +77,13 @@ def list_images(folder: Path) -> list[Path]:
 
 
 def is_scene_folder(path: Path) -> bool:
-    return (path / "before").is_dir() and (path / "after").is_dir()
+    """Whether ``path`` has a before and an after set (a folder, or a video per set)."""
+    from .video import is_video
+
+    def has(set_name):
+        return (path / set_name).is_dir() or any(is_video(p) for p in path.glob(f"{set_name}.*"))
+
+    return has("before") and has("after")
 
 
 def _check_name(name: str, where: str) -> str:
@@ -224,9 +235,18 @@ def validate_scene(scene_dir: str | Path) -> dict:
     root = Path(scene_dir)
     if not root.is_dir():
         raise SceneError(f"scene folder {root} does not exist")
+    from .video import find_video, video_info
+
     images: list[dict] = []
     sets = {"before": root / "before", "after": root / "after"}
     for name, folder in sets.items():
+        video = find_video(root, name)
+        if video is not None:
+            info = video_info(video)
+            images.append({"path": str(video.relative_to(root)), "set": name, "video": True,
+                           "frames": info["frames"], "width": info["width"],
+                           "height": info["height"]})
+            continue
         if not folder.is_dir():
             raise SceneError(f"{root}: missing folder {name}/ (put the images taken "
                              f"{'before' if name == 'before' else 'after'} the change there)")
@@ -267,7 +287,11 @@ def validate_scene(scene_dir: str | Path) -> dict:
                              "eval/before and eval/after images")
     size = None
     for rec in images:
-        w, h, sha1 = _size_and_sha1(root / rec["path"])
+        if rec.get("video"):
+            w, h = rec["width"], rec["height"]
+            sha1 = hashlib.sha1((root / rec["path"]).read_bytes()).hexdigest()
+        else:
+            w, h, sha1 = _size_and_sha1(root / rec["path"])
         rec["width"], rec["height"] = w, h
         if size is None:
             size = (w, h, rec["path"])
@@ -280,8 +304,69 @@ def validate_scene(scene_dir: str | Path) -> dict:
             "images": images, "eval_views": eval_views}
 
 
-def write_manifest(scene_dir: str | Path, out_path: str | Path) -> dict:
-    """Validate ``scene_dir`` and write its manifest JSON atomically; returns the manifest."""
+IMAGES_DIR = "images"  # beside the manifest: the scene's images when a set is a video
+
+
+def write_manifest(scene_dir: str | Path, out_path: str | Path, options=None) -> dict:
+    """Validate ``scene_dir`` and write its manifest JSON atomically; returns the manifest.
+
+    When a set is a video (``options``: :class:`gdiff.video.InputOptions`), its frames are
+    picked and written to ``<manifest folder>/images/<set>/`` and every photo of the scene is
+    linked (or copied) beside them, so that one folder holds all the scene's images; the
+    manifest then lists the frames like photos and names that folder in ``image_root``
+    (relative to the manifest). Without videos the manifest lists the scene's own files.
+    """
+    from .video import InputOptions, extract_frames
+
+    options = options or InputOptions()
     manifest = validate_scene(scene_dir)
+    if any(r.get("video") for r in manifest["images"]):
+        root, out_root = Path(scene_dir), Path(out_path).parent / IMAGES_DIR
+        images = []
+        for rec in manifest["images"]:
+            if rec.get("video"):
+                names = extract_frames(root / rec["path"], out_root / rec["set"],
+                                       options.video_frames)
+                for n in names:
+                    images.append({"path": f"{rec['set']}/{n}", "set": rec["set"],
+                                   "width": rec["width"], "height": rec["height"],
+                                   "video": rec["path"]})
+            elif not rec["set"].startswith("eval"):
+                _link(root / rec["path"], out_root / rec["path"])
+                images.append(rec)
+            else:
+                images.append(rec)
+        if (root / "eval").is_dir():  # eval images, masks and any other ground truth
+            for f in sorted((root / "eval").rglob("*")):
+                if f.is_file():
+                    _link(f, out_root / f.relative_to(root))
+        manifest["images"] = images
+        manifest["image_root"] = IMAGES_DIR
     write_json(out_path, manifest)
     return manifest
+
+
+def _link(src: Path, dst: Path) -> None:
+    """``dst`` the same file as ``src``: a hard link, else a copy (replacing ``dst``)."""
+    import os
+    import shutil
+
+    dst.parent.mkdir(parents=True, exist_ok=True)
+    tmp = dst.with_name(f".{dst.name}.tmp")
+    tmp.unlink(missing_ok=True)
+    try:
+        os.link(src, tmp)
+    except OSError:
+        shutil.copyfile(src, tmp)
+    os.replace(tmp, dst)
+
+
+def manifest_image_root(manifest_path: str | Path, scene_dir: str | Path) -> Path:
+    """The folder the images listed in a manifest are relative to (``image_root``, else the
+    scene folder)."""
+    from .io import read_json
+
+    data = read_json(manifest_path)
+    if data.get("image_root"):
+        return Path(manifest_path).parent / data["image_root"]
+    return Path(scene_dir)

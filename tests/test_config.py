@@ -12,6 +12,7 @@ from gdiff.options import from_config
 
 ROOT = Path(__file__).resolve().parents[1]
 SECTIONS = {
+    "input": ("gdiff.video", "InputOptions"),
     "poses": ("gdiff.sfm", "PosesOptions"),
     "fit": ("gdiff.splat.train", "FitOptions"),
     "interpolate": ("gdiff.interpolate", "InterpolateOptions"),

@@ -27,7 +27,8 @@ log = logging.getLogger("gdiff.sfm")
 
 def run_poses(scene_dir: str | os.PathLike, out_dir: str | os.PathLike,
               options: PosesOptions | None = None,
-              images: list[tuple[str, str]] | None = None) -> dict:
+              images: list[tuple[str, str]] | None = None,
+              image_root: str | os.PathLike | None = None) -> dict:
     """Register all images of a scene in one frame and write the poses outputs.
 
     Args:
@@ -37,6 +38,9 @@ def run_poses(scene_dir: str | os.PathLike, out_dir: str | os.PathLike,
         images: ``(relative path, set)`` pairs with set in before | after | eval_before |
             eval_after, in capture order within each set; None discovers them
             (:func:`discover_images`).
+        image_root: the folder the image paths are relative to, when not ``scene_dir`` (the
+            manifest's ``image_root``: frames taken from videos, see :mod:`gdiff.video`);
+            ``cameras.json`` then names it in ``image_dir``.
 
     Returns:
         Summary dict: ``source`` (colmap | known), ``matcher``, ``images`` and ``registered``
@@ -60,7 +64,8 @@ def run_poses(scene_dir: str | os.PathLike, out_dir: str | os.PathLike,
         raise SceneError(f"image list for {root}: unknown set(s) {unknown_sets}; "
                          f"use {', '.join(SETS)}")
     names = [n for n, _ in images]
-    sizes = _image_sizes(root, names)
+    photos = Path(image_root) if image_root is not None else root
+    sizes = _image_sizes(photos, names)
     counts = _count(images)
     log.info("poses for %s: %d images (%s)", root, len(images),
              ", ".join(f"{k} {v}" for k, v in counts.items()))
@@ -72,6 +77,10 @@ def run_poses(scene_dir: str | os.PathLike, out_dir: str | os.PathLike,
             raise PosesError(f"{root}: poses.source is 'known' but the scene has no "
                              "cameras.json or transforms.json; add one or set "
                              "poses.source: colmap")
+        if known is not None and photos != root:
+            raise PosesError(f"{root}: known poses (cameras.json / transforms.json) cannot name "
+                             "frames picked from a video; give photos with their poses, or "
+                             "remove the poses file so that COLMAP registers the frames")
     out.mkdir(parents=True, exist_ok=True)
     work = Path(tempfile.mkdtemp(prefix=".poses_work_", dir=out))
     try:
@@ -79,12 +88,12 @@ def run_poses(scene_dir: str | os.PathLike, out_dir: str | os.PathLike,
             if known is not None:
                 result = _run_known(root, work, images, sizes, known, opts)
             else:
-                result = _run_colmap(root, work, images, sizes, opts)
+                result = _run_colmap(photos, work, images, sizes, opts)
         cams, rec, summary, image_dir = result
         if image_dir is None and any(c.dist is not None for c in cams):
             log.info("COLMAP estimated lens distortion (%s): undistorting the photos",
                      opts.camera_model)
-            pinholes = undistort_scene(root, work / "images", cams)
+            pinholes = undistort_scene(photos, work / "images", cams)
             undistort_reconstruction(rec, {c.image: c for c in cams},
                                      {c.image: c for c in pinholes})
             cams, image_dir = pinholes, "images"
@@ -94,7 +103,7 @@ def run_poses(scene_dir: str | os.PathLike, out_dir: str | os.PathLike,
         n_seed = opts.seed_points_per_image * len(cams) if n_tri < n_min else 0
         if n_seed:
             near, far, how = depth_range(cams, xyz)
-            sx, sc = seed_frustum_points(cams, work / image_dir if image_dir else root, n_seed,
+            sx, sc = seed_frustum_points(cams, work / image_dir if image_dir else photos, n_seed,
                                          near, far, seed=opts.seed)
             log.info("%d triangulated points < %d (poses.min_points_per_image %d x %d "
                      "images): seeded %d points in the camera frusta, depths %.3g to %.3g "
@@ -109,7 +118,8 @@ def run_poses(scene_dir: str | os.PathLike, out_dir: str | os.PathLike,
         model_dir = work / "sparse" / "0"
         model_dir.mkdir(parents=True, exist_ok=True)
         rec.write_binary(str(model_dir))
-        _commit(work, out, cams, image_dir)
+        _commit(work, out, cams, image_dir,
+                None if photos == root else os.path.relpath(photos, out))
     finally:
         shutil.rmtree(work, ignore_errors=True)
     summary["seconds"] = round(time.time() - t0, 2)
@@ -119,8 +129,11 @@ def run_poses(scene_dir: str | os.PathLike, out_dir: str | os.PathLike,
     return summary
 
 
-def _commit(work: Path, out: Path, cams: list[Camera], image_dir: str | None) -> None:
-    """Move the finished outputs from ``work`` into ``out``; cameras.json last."""
+def _commit(work: Path, out: Path, cams: list[Camera], image_dir: str | None,
+            photo_dir: str | None = None) -> None:
+    """Move the finished outputs from ``work`` into ``out``; cameras.json last. ``image_dir``
+    (in ``work``: undistorted photos) is moved to ``out``; otherwise ``photo_dir`` (relative
+    to ``out``), where set, is where cameras.json says the images are."""
     (out / "cameras.json").unlink(missing_ok=True)
     if (out / "images").exists():  # undistorted photos of an earlier run
         os.replace(out / "images", work / "old_images")
@@ -133,4 +146,4 @@ def _commit(work: Path, out: Path, cams: list[Camera], image_dir: str | None) ->
         os.replace(target, old)
     os.replace(work / "sparse" / "0", target)
     os.replace(work / "points.ply", out / "points.ply")
-    save_cameras(out / "cameras.json", cams, image_dir=image_dir)
+    save_cameras(out / "cameras.json", cams, image_dir=image_dir or photo_dir)

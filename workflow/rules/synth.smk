@@ -24,6 +24,8 @@ rule manifest:
         scene_dir,
     output:
         res("{scene}", "input", "manifest.json"),
+    params:
+        options=options("input"),
     conda:
         "../envs/gdiff.yaml"
     log:

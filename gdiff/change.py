@@ -565,6 +565,7 @@ def decide(stats: list[tuple[object, dict[int, dict]]], o: CompareOptions) -> pd
     df = pd.DataFrame(rows, columns=["id", "changed", "type", "partner", "n_t0", "n_t1",
                                      "n_confirmed", "first", "last", "area", "_hist", "_size",
                                      "_pos"])
+    df["changed"] = df["changed"].astype(bool)  # also when empty: a mask, not column labels
     _pair_moved(df, o)
     _group_instances(df)
     return df.drop(columns=["_hist", "_size", "_pos"])

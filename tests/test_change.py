@@ -619,3 +619,12 @@ def test_pose_stats_per_id_summaries_match_the_whole_image():
         pts = world_points(z, cam)[m]
         assert np.allclose(r["pos"], np.median(pts, 0))
         assert np.array_equal(r["hist"], _chroma_hist(_normalised_chroma(rgb), m))
+
+
+def test_decide_with_no_instance_gives_an_empty_table_with_its_columns():
+    # a scene where segmentation found nothing to judge (e.g. no surface observed at both
+    # times): no change, and the changed rows keep the columns that changes.csv needs
+    df = decide([], CompareOptions())
+    assert df.empty and df["changed"].dtype == bool
+    changed = df[df["changed"]].drop(columns=["changed"])
+    assert {"id", "type", "instance"} <= set(changed.columns)

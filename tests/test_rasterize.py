@@ -394,3 +394,18 @@ def test_gradients_are_reproducible_with_threads(backend):
     for g in grads[1:]:
         for name, a, b in zip(names, grads[0], g):
             assert torch.equal(a, b), name
+
+
+def test_stale_build_lock_is_removed_and_a_fresh_one_kept(tmp_path):
+    import os
+    import time
+
+    from gdiff.splat.csrc import clear_stale_lock
+
+    lock = tmp_path / "lock"
+    assert not clear_stale_lock(tmp_path)
+    lock.write_text("")
+    assert not clear_stale_lock(tmp_path) and lock.exists()  # another process is building
+    old = time.time() - 3600
+    os.utime(lock, (old, old))
+    assert clear_stale_lock(tmp_path) and not lock.exists()

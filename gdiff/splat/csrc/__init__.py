@@ -37,6 +37,32 @@ _module = None
 _failed: str | None = None
 
 
+STALE_LOCK_SECONDS = 600  # a build takes well under a minute; an older lock was left by a kill
+
+
+def clear_stale_lock(build_dir: str | os.PathLike, max_age: float = STALE_LOCK_SECONDS) -> bool:
+    """Remove ``build_dir/lock`` when it is older than ``max_age`` seconds.
+
+    torch's extension builder holds that file while compiling and waits, without a time limit,
+    for another process's lock to go away; a process killed mid-build (Ctrl-C, a killed
+    Snakemake job) leaves it behind, and every later run would then wait forever. Returns
+    whether a lock was removed (logged as a warning).
+    """
+    import time
+
+    lock = Path(build_dir) / "lock"
+    try:
+        age = time.time() - lock.stat().st_mtime
+    except FileNotFoundError:
+        return False
+    if age <= max_age:
+        return False
+    lock.unlink(missing_ok=True)
+    log.warning("removed a stale build lock %s (%.0f s old, left by an interrupted build)",
+                lock, age)
+    return True
+
+
 def load(required: bool = False, verbose: bool = False):
     """Build (first time) and import the extension module.
 
@@ -50,9 +76,11 @@ def load(required: bool = False, verbose: bool = False):
                 _failed = "disabled by GDIFF_NO_CPP=1"
             else:
                 try:
+                    from torch.utils.cpp_extension import _get_build_directory
                     from torch.utils.cpp_extension import load as _load
 
                     name = f"gdiff_splat_cpu_{platform.machine()}"
+                    clear_stale_lock(_get_build_directory(name, False))
                     _load(name=name, sources=[str(p) for p in _SOURCES], verbose=verbose,
                           is_python_module=False,
                           extra_cflags=["-O3", "-march=native", "-ffp-contract=off",

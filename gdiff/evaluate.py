@@ -236,18 +236,28 @@ def _by_stem(folder: Path) -> dict[str, Path]:
     return out
 
 
-def find_eval_views(scene_dir: str | Path, cameras_json: str | Path | None = None
-                    ) -> list[EvalView]:
+def find_eval_views(scene_dir: str | Path, cameras_json: str | Path | None = None,
+                    original_dir: str | Path | None = None) -> list[EvalView]:
     """The eval views of a scene folder (layout in the module docstring), sorted by name.
 
     ``cameras_json`` (the poses stage's ``cameras.json``) supplies the eval cameras: frames of
     set ``eval_after`` (preferred) or ``eval_before`` whose image is the view's image.
+    ``original_dir``: the user's scene folder when ``scene_dir`` is the poses stage's copy of
+    the images (undistorted photos); ``eval/boxes.json`` is read from there when the copy has
+    none (its boxes are in the original photos' pixels).
     """
     root = Path(scene_dir)
     ev = root / "eval"
     masks = _by_stem(ev / "masks")
     before, after = _by_stem(ev / "before"), _by_stem(ev / "after")
-    box_gt = read_boxes(ev / "boxes.json") if (ev / "boxes.json").is_file() else None
+    boxes_json = ev / "boxes.json"
+    if not boxes_json.is_file() and original_dir is not None:
+        boxes_json = Path(original_dir) / "eval" / "boxes.json"
+        if boxes_json.is_file() and Path(original_dir).resolve() != root.resolve():
+            log.warning("%s: boxes are in the original photos' pixels; the scored maps are of "
+                        "the undistorted photos (box positions are approximate near the "
+                        "image edges)", boxes_json)
+    box_gt = read_boxes(boxes_json) if boxes_json.is_file() else None
     if not masks and box_gt is None:
         raise SceneError(f"{ev}/masks: no ground-truth masks; the evaluate stage needs "
                          "eval/masks/NAME.png with eval/before/NAME.* and/or eval/after/NAME.*, "
@@ -469,7 +479,7 @@ def evaluate_scene(scene_dir: str | Path, cameras_json: str | Path | None, out_d
     than the ground truth is resized (nearest) with a warning. Returns the metrics table.
     """
     out_dir = Path(out_dir)
-    views = find_eval_views(image_root(scene_dir, cameras_json), cameras_json)
+    views = find_eval_views(image_root(scene_dir, cameras_json), cameras_json, scene_dir)
     rows, box_frames = [], []
     for view in progress(views, desc=f"evaluate {scene_name}"):
         gt = view.read_gt() if view.mask is not None else None

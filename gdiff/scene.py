@@ -35,7 +35,9 @@ The ``scenes`` config key names what to run on (see :func:`discover_scenes`):
 from __future__ import annotations
 
 import hashlib
+import os
 import re
+import shutil
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -45,7 +47,8 @@ import numpy as np
 import yaml
 
 from .errors import ConfigError, SceneError
-from .io import IMAGE_EXTENSIONS, write_json
+from .io import IMAGE_EXTENSIONS, read_json, write_json
+from .video import InputOptions, extract_frames, find_video, is_video, video_info
 
 MIN_IMAGES = 3
 SCENE_NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._-]*$")
@@ -78,8 +81,6 @@ def list_images(folder: Path) -> list[Path]:
 
 def is_scene_folder(path: Path) -> bool:
     """Whether ``path`` has a before and an after set (a folder, or a video per set)."""
-    from .video import is_video
-
     def has(set_name):
         return (path / set_name).is_dir() or any(is_video(p) for p in path.glob(f"{set_name}.*"))
 
@@ -235,8 +236,6 @@ def validate_scene(scene_dir: str | Path) -> dict:
     root = Path(scene_dir)
     if not root.is_dir():
         raise SceneError(f"scene folder {root} does not exist")
-    from .video import find_video, video_info
-
     images: list[dict] = []
     sets = {"before": root / "before", "after": root / "after"}
     for name, folder in sets.items():
@@ -316,8 +315,6 @@ def write_manifest(scene_dir: str | Path, out_path: str | Path, options=None) ->
     manifest then lists the frames like photos and names that folder in ``image_root``
     (relative to the manifest). Without videos the manifest lists the scene's own files.
     """
-    from .video import InputOptions, extract_frames
-
     options = options or InputOptions()
     manifest = validate_scene(scene_dir)
     if any(r.get("video") for r in manifest["images"]):
@@ -331,10 +328,9 @@ def write_manifest(scene_dir: str | Path, out_path: str | Path, options=None) ->
                     images.append({"path": f"{rec['set']}/{n}", "set": rec["set"],
                                    "width": rec["width"], "height": rec["height"],
                                    "video": rec["path"]})
-            elif not rec["set"].startswith("eval"):
-                _link(root / rec["path"], out_root / rec["path"])
-                images.append(rec)
             else:
+                if not rec["set"].startswith("eval"):  # eval/ is linked whole below
+                    _link(root / rec["path"], out_root / rec["path"])
                 images.append(rec)
         if (root / "eval").is_dir():  # eval images, masks and any other ground truth
             for f in sorted((root / "eval").rglob("*")):
@@ -348,9 +344,6 @@ def write_manifest(scene_dir: str | Path, out_path: str | Path, options=None) ->
 
 def _link(src: Path, dst: Path) -> None:
     """``dst`` the same file as ``src``: a hard link, else a copy (replacing ``dst``)."""
-    import os
-    import shutil
-
     dst.parent.mkdir(parents=True, exist_ok=True)
     tmp = dst.with_name(f".{dst.name}.tmp")
     tmp.unlink(missing_ok=True)
@@ -364,8 +357,6 @@ def _link(src: Path, dst: Path) -> None:
 def manifest_image_root(manifest_path: str | Path, scene_dir: str | Path) -> Path:
     """The folder the images listed in a manifest are relative to (``image_root``, else the
     scene folder)."""
-    from .io import read_json
-
     data = read_json(manifest_path)
     if data.get("image_root"):
         return Path(manifest_path).parent / data["image_root"]

@@ -22,7 +22,7 @@ import cv2
 import numpy as np
 
 from .errors import SceneError
-from .io import write_image
+from .io import IMAGE_EXTENSIONS, write_image
 from .log import progress
 
 log = logging.getLogger("gdiff.video")
@@ -53,8 +53,6 @@ def find_video(root: str | Path, set_name: str) -> Path | None:
     ``root/<set>.<ext>`` or the only video inside ``root/<set>/``. Raises :class:`SceneError`
     when the choice is ambiguous (several videos, or a video beside photos).
     """
-    from .io import IMAGE_EXTENSIONS
-
     root = Path(root)
     found = [p for p in sorted(root.glob(f"{set_name}.*")) if is_video(p)]
     folder = root / set_name
@@ -81,25 +79,18 @@ def _open(path: Path) -> cv2.VideoCapture:
 
 
 def video_info(path: str | Path) -> dict:
-    """``{"width", "height", "frames"}`` of a video (frames counted by decoding)."""
+    """``{"width", "height", "frames"}`` of a video: the size of its first frame and the frame
+    count its container states (the frames are counted exactly when they are extracted)."""
     path = Path(path)
     cap = _open(path)
-    n, size = 0, None
     try:
-        while True:
-            ok = cap.grab()
-            if not ok:
-                break
-            if size is None:
-                ok, frame = cap.retrieve()
-                if ok:
-                    size = frame.shape[1], frame.shape[0]
-            n += 1
+        ok, frame = cap.read()
+        n = int(cap.get(cv2.CAP_PROP_FRAME_COUNT))
     finally:
         cap.release()
-    if n == 0 or size is None:
+    if not ok or frame is None:
         raise SceneError(f"{path}: the video has no readable frames")
-    return {"width": int(size[0]), "height": int(size[1]), "frames": n}
+    return {"width": int(frame.shape[1]), "height": int(frame.shape[0]), "frames": max(n, 1)}
 
 
 def sharpness(frame: np.ndarray) -> float:

@@ -38,7 +38,7 @@ from typing import Iterable, Mapping
 import numpy as np
 import pandas as pd
 
-from .summary import collect_metrics, collect_timings, summarize_metrics
+from .summary import collect_metrics, collect_timings, find_benchmarks, summarize_metrics
 
 QUALITY = {"P_pooled": "P", "R_pooled": "R", "F1_pooled": "F1", "IoU_pooled": "IoU",
            "obj_R_pooled": "obj_R", "gtbox_R_pooled": "box_R", "far_frac_pooled": "far_frac"}
@@ -95,9 +95,7 @@ def scene_timings(results: str | Path, scenes: Iterable[str]) -> pd.DataFrame:
     """``scene, rule, seconds, cpu_seconds, max_rss_mb`` per scene and rule: from the
     benchmark TSVs, else from ``results/timings.csv`` (module docstring)."""
     results = Path(results)
-    tsvs = {(s, p.stem): p for s in scenes
-            for p in sorted((results / s / "benchmarks").glob("*.tsv"))}
-    t = collect_timings(tsvs)
+    t = collect_timings(find_benchmarks({s: results / s / "benchmarks" for s in scenes}))
     have = set(t["scene"])
     missing = [s for s in scenes if s not in have]
     if missing and (results / "timings.csv").is_file():

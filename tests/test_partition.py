@@ -378,6 +378,8 @@ def test_change_map_union_split_and_save_load(tmp_path):
     assert changed.means[0, 0] > 0
     counts = write_split_ply(pm, tmp_path)
     assert counts["n_changed"] == 2 and counts["n_unchanged"] == 1  # changed at t=0 and t=1
+    assert sorted(p.name for p in tmp_path.glob("*.ply")) == [
+        "changed.ply", "changed_t0.ply", "changed_t1.ply", "unchanged.ply"]
     g = read_gaussians(tmp_path / "changed_t0.ply")
     np.testing.assert_allclose(g.means.numpy(), [[0.3, 0.0, 0.0]], atol=1e-6)
     save_partition_model(pm, tmp_path / "model.pt")

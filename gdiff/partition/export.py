@@ -40,19 +40,24 @@ def split_gaussians(pm: PartitionModel, t: float, threshold: float = 0.5):
 
 
 def write_split_ply(pm: PartitionModel, out_dir, threshold: float = 0.5) -> dict:
-    """Write ``changed_t0/_t1.ply``, ``unchanged_t0/_t1.ply`` (3DGS layout) and
-    ``changed.ply`` (the changed Gaussians present at t=0 followed by those present at t=1:
-    what was there and changed plus what is new), ``unchanged.ply`` (= ``unchanged_t0``).
-    Returns the Gaussian counts per file."""
+    """Write ``changed_t0.ply`` / ``changed_t1.ply`` (the changed Gaussians deformed to t=0 / t=1),
+    ``changed.ply`` (those present at t=0 followed by those present at t=1: what was there and
+    changed plus what is new) and ``unchanged.ply`` (the unchanged Gaussians at t=0), all in the
+    3DGS PLY layout. The unchanged Gaussians at t=1 are not written: they are the same
+    Gaussians, and a copy per time would double the largest file of the stage.
+    Returns the Gaussian counts per file (``n_changed_t0``, ``n_changed_t1``, ``n_changed``,
+    ``n_unchanged``)."""
     out = Path(out_dir)
-    parts, counts = {}, {}
+    parts = {}
     for t in (0, 1):
-        parts[f"changed_t{t}"], parts[f"unchanged_t{t}"] = split_gaussians(pm, t, threshold)
+        parts[f"changed_t{t}"], unchanged = split_gaussians(pm, t, threshold)
+        if t == 0:
+            parts["unchanged"] = unchanged
     c0, c1 = parts["changed_t0"], parts["changed_t1"]
     parts["changed"] = Gaussians(*(torch.cat([getattr(c0, k), getattr(c1, k)])
                                    for k in ("means", "quats", "scales", "opacities", "sh")),
                                  sh_degree=c0.sh_degree)
-    parts["unchanged"] = parts["unchanged_t0"]
+    counts = {}
     for name, g in parts.items():
         write_gaussians(out / f"{name}.ply", g)
         counts[f"n_{name}"] = len(g)

@@ -313,7 +313,7 @@ def train_partition(fit_model_path, cameras_json, keyframes_csv, scene_dir, out_
             :func:`read_key_views`).
         scene_dir: the scene folder (photos).
         out_dir: ``results/<scene>/partition/``; receives ``model.pt``, ``changed.ply``,
-            ``unchanged.ply`` (+ per-time ``changed_t0/_t1``, ``unchanged_t0/_t1`` PLYs),
+            ``unchanged.ply`` (+ per-time ``changed_t0/_t1`` PLYs),
             ``probability.npy`` (per-Gaussian change probability [N] float32),
             ``maps/`` (change maps at every key pose, see :func:`write_key_maps`),
             ``keypose_scores.csv``, ``train_log.csv``, ``summary.json``; ``ckpt/`` while

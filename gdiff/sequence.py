@@ -58,6 +58,8 @@ class RenderOptions:
         dwa_level: OpenEXR ``dwaCompressionLevel`` for ``dwaa`` / ``dwab`` (higher = smaller
             files, coarser colour; OpenEXR's default is 45).
         previews: also write an 8-bit PNG preview per frame (for inspection only).
+        keep_frames: keep the frame folders after segment and compare have read them (the
+            workflow otherwise marks them temporary; read by the Snakefile, not by this stage).
         sheet_max_frames: frames shown on a contact sheet (evenly spaced; key frames kept
             first when thinning).
         sheet_columns: thumbnails per row of a contact sheet.
@@ -70,6 +72,7 @@ class RenderOptions:
     compression: str = "dwaa"
     dwa_level: float = 45.0
     previews: bool = False
+    keep_frames: bool = False
     sheet_max_frames: int = 48
     sheet_columns: int = 8
     sheet_thumb_side: int = 160

@@ -4,6 +4,7 @@
 rule segment:
     input:
         index=res("{scene}", "render", "frames.json"),
+        frames=frame_dirs,
         poses=res("{scene}", "sequence", "poses.json"),
     output:
         index=res("{scene}", "instances", "index.json"),
@@ -25,6 +26,7 @@ rule segment:
 rule compare:
     input:
         index=res("{scene}", "instances", "index.json"),
+        frames=frame_dirs,
         poses=res("{scene}", "sequence", "poses.json"),
     output:
         keyframes=res("{scene}", "change", "keyframes.csv"),

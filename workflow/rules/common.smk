@@ -103,3 +103,20 @@ def all_targets():
     if any(s.has_eval for s in SCENES.values()):
         out += ["results/summary.csv", "results/timings.csv"]
     return out
+
+
+# The rendered EXR frames: one folder per interpolated path and time (render/p1/t0, ...).
+FRAME_DIRS = [(path, t) for path in ("p1", "p2") for t in ("t0", "t1")]
+
+
+def frame_dirs(wildcards):
+    """Input function: the render stage's frame folders of a scene (read by segment, compare)."""
+    return [res(wildcards.scene, "render", path, t) for path, t in FRAME_DIRS]
+
+
+def frames_output(path):
+    """A frame folder as a render output: temporary (deleted by Snakemake once segment and
+    compare have run) unless ``render.keep_frames`` is set or Snakemake runs with ``--notemp``."""
+    if (config.get("render") or {}).get("keep_frames", False):
+        return directory(path)
+    return temp(directory(path))

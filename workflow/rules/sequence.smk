@@ -25,6 +25,7 @@ rule render:
         poses=res("{scene}", "sequence", "poses.json"),
     output:
         index=res("{scene}", "render", "frames.json"),
+        frames=[frames_output(res("{scene}", "render", path, t)) for path, t in FRAME_DIRS],
         sheets=[
             report(
                 res("{scene}", "render", path, f"{t}_sheet.png"),

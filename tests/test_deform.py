@@ -230,3 +230,33 @@ def test_compiled_lookup_matches_grid_sample_values_and_gradients():
         torch.testing.assert_close(fast, ref.detach(), rtol=1e-5, atol=1e-6)
         for a, b in zip(g_fast, (p.grad for p in hp.grids)):
             torch.testing.assert_close(a, b, rtol=1e-4, atol=1e-5)
+
+
+def test_compiled_lookup_gradient_is_the_same_for_any_thread_count():
+    """The backward kernel scatters in parallel over planes: the table gradient must be
+    bitwise the same with 1 and 2 threads, over more points than one chunk (4096)."""
+    from gdiff.splat import csrc
+
+    if csrc.load(required=False) is None:
+        pytest.skip("C++ kernel not available")
+    torch.manual_seed(2)
+    hp = HexPlane(resolution=(9, 8, 6), time_resolution=4, multires=[1, 2], features=4)
+    with torch.no_grad():
+        for p in hp.grids:
+            p.add_(torch.randn_like(p) * 0.3)
+        hp.set_aabb(torch.tensor([-1.0, -1.0, -1.0]), torch.tensor([1.0, 1.0, 1.0]))
+    xyz = torch.rand(9000, 3) * 2 - 1
+    w = torch.randn(9000, 8)
+    grads = []
+    n_threads = torch.get_num_threads()
+    try:
+        for k in (1, 2):
+            torch.set_num_threads(k)
+            hp.zero_grad()
+            (hp(xyz, 0.6) * w).sum().backward()
+            grads.append([p.grad.clone() for p in hp.grids])
+    finally:
+        torch.set_num_threads(n_threads)
+    for a, b in zip(*grads):
+        assert torch.equal(a, b)
+    assert any(bool(g.abs().sum() > 0) for g in grads[0])

@@ -8,7 +8,8 @@
 // All planes live in one channels-last table [R, F]: plane p's texel (x, y) is row
 // offset_p + y * W_p + x. The samples of the planes of one level are multiplied (HexPlane). Channels-last makes each texel's F features one contiguous read,
 // where grid_sample on [1, F, H, W] strides over F planes; that is what makes this faster.
-// The backward pass scatters into a dense gradient table, serially (deterministic).
+// The backward pass scatters into a dense gradient table, in parallel over planes (each plane
+// owns its rows), so the result is the same for any thread count.
 
 #include <ATen/Parallel.h>
 #include <ATen/core/Tensor.h>
@@ -103,7 +104,12 @@ at::Tensor hexplane_forward(at::Tensor table, at::Tensor coords, at::Tensor plan
 }
 
 // grad_out [N, levels, F] -> grad_table [rows, F] (product rule with prefix / suffix
-// products of the group's samples: no division, exact for zero samples)
+// products of the group's samples: no division, exact for zero samples).
+// Points are taken in chunks. For each chunk, step 1 (parallel over points) computes each
+// (point, plane) pair's texel rows, bilinear weights and the gradient reaching that plane's
+// sample; step 2 (parallel over planes) scatters them into the table. Planes own disjoint
+// rows and every row sums its contributions in point order, so the result does not depend
+// on the number of threads (deterministic, as training resume needs).
 at::Tensor hexplane_backward(at::Tensor table, at::Tensor grad_out, at::Tensor coords,
                              at::Tensor planes, int64_t group) {
   check(table, "table", 2, at::kFloat);
@@ -118,28 +124,44 @@ at::Tensor hexplane_backward(at::Tensor table, at::Tensor grad_out, at::Tensor c
   const float* C = coords.data_ptr<float>();
   const int64_t* PL = planes.data_ptr<int64_t>();
   float* R = grad.data_ptr<float>();
-  std::vector<float> s(group * F), pre((group + 1) * F), suf((group + 1) * F);
-  std::vector<Corners> cs(group);
-  for (int64_t n = 0; n < N; ++n) {
-    for (int64_t l = 0; l < L; ++l) {
-      const float* g = G + (n * L + l) * F;
-      for (int64_t q = 0; q < group; ++q)
-        sample(T, C, PL + (l * group + q) * 5, n, F, s.data() + q * F, cs[q]);
-      for (int64_t f = 0; f < F; ++f) { pre[f] = 1.f; suf[group * F + f] = 1.f; }
-      for (int64_t q = 0; q < group; ++q)
-        for (int64_t f = 0; f < F; ++f) pre[(q + 1) * F + f] = pre[q * F + f] * s[q * F + f];
-      for (int64_t q = group - 1; q >= 0; --q)
-        for (int64_t f = 0; f < F; ++f) suf[q * F + f] = suf[(q + 1) * F + f] * s[q * F + f];
-      for (int64_t q = 0; q < group; ++q) {
-        const Corners& c = cs[q];
-        for (int k = 0; k < 4; ++k) {
-          float* r = R + c.row[k] * F;
-          const float w = c.w[k];
-          for (int64_t f = 0; f < F; ++f)
-            r[f] += w * g[f] * pre[q * F + f] * suf[(q + 1) * F + f];
+  const int64_t chunk = 4096;
+  std::vector<float> coef(chunk * P * F);
+  std::vector<Corners> cor(chunk * P);
+  for (int64_t n0 = 0; n0 < N; n0 += chunk) {
+    const int64_t n1 = std::min(N, n0 + chunk);
+    at::parallel_for(n0, n1, 256, [&](int64_t begin, int64_t end) {
+      std::vector<float> s(group * F), pre((group + 1) * F), suf((group + 1) * F);
+      for (int64_t n = begin; n < end; ++n) {
+        for (int64_t l = 0; l < L; ++l) {
+          const float* g = G + (n * L + l) * F;
+          Corners* cs = &cor[((n - n0) * P + l * group)];
+          for (int64_t q = 0; q < group; ++q)
+            sample(T, C, PL + (l * group + q) * 5, n, F, s.data() + q * F, cs[q]);
+          for (int64_t f = 0; f < F; ++f) { pre[f] = 1.f; suf[group * F + f] = 1.f; }
+          for (int64_t q = 0; q < group; ++q)
+            for (int64_t f = 0; f < F; ++f) pre[(q + 1) * F + f] = pre[q * F + f] * s[q * F + f];
+          for (int64_t q = group - 1; q >= 0; --q)
+            for (int64_t f = 0; f < F; ++f) suf[q * F + f] = suf[(q + 1) * F + f] * s[q * F + f];
+          for (int64_t q = 0; q < group; ++q) {
+            float* cf = &coef[((n - n0) * P + l * group + q) * F];
+            for (int64_t f = 0; f < F; ++f) cf[f] = g[f] * pre[q * F + f] * suf[(q + 1) * F + f];
+          }
         }
       }
-    }
+    });
+    at::parallel_for(0, P, 1, [&](int64_t pb, int64_t pe) {
+      for (int64_t p = pb; p < pe; ++p) {
+        for (int64_t n = n0; n < n1; ++n) {
+          const Corners& c = cor[(n - n0) * P + p];
+          const float* cf = &coef[((n - n0) * P + p) * F];
+          for (int k = 0; k < 4; ++k) {
+            float* r = R + c.row[k] * F;
+            const float w = c.w[k];
+            for (int64_t f = 0; f < F; ++f) r[f] += w * cf[f];
+          }
+        }
+      }
+    });
   }
   return grad;
 }

@@ -328,6 +328,14 @@ def test_cli(tmp_path, monkeypatch, capsys):
     assert synth.main([str(out), "--preset", "micro"]) == 1
     assert "not empty" in capsys.readouterr().err
     assert synth.main([str(out), "--preset", "micro", "--overwrite"]) == 0
+    more = tmp_path / "more"
+    assert synth.main([str(more), "--preset", "micro", "--n-before", "3", "--n-after", "4",
+                       "--n-eval", "1"]) == 0
+    assert (len(list((more / "before").glob("*.png"))), len(list((more / "after").glob("*.png")))) \
+        == (3, 4)
+    assert json.loads((more / "meta.json").read_text())["preset_settings"]["n_after"] == 4
+    assert synth.main([str(tmp_path / "bad"), "--preset", "micro", "--n-before", "1"]) == 1
+    assert "n_before" in capsys.readouterr().err
 
 
 def _inside(shape, p, tol=0.0):

@@ -19,7 +19,7 @@ from ..io import write_image, write_json, write_mask
 from ..log import progress
 from .build import build_scene
 from .model import STATES
-from .presets import PRESETS, SynthPreset, get_preset
+from .presets import PRESETS, SynthOptions, SynthPreset, get_preset
 from .scene import SynthScene
 
 log = logging.getLogger("gdiff.synth")
@@ -159,7 +159,8 @@ def _render_folder(scene: SynthScene, root: Path) -> dict:
 
 
 def main(argv: list[str] | None = None) -> int:
-    """``gdiff synth OUT --preset NAME [--seed N] [--overwrite]``; returns the exit code."""
+    """``gdiff synth OUT --preset NAME [--seed N] [--n-before N] [--n-after N] [--n-eval N]
+    [--width W --height H] [--overwrite]``; returns the exit code."""
     ap = argparse.ArgumentParser(
         prog="gdiff synth",
         description="Render a procedural before/after scene with ground-truth change masks "
@@ -168,11 +169,19 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--preset", default="tiny", choices=sorted(PRESETS),
                     help="scene preset (default: tiny)")
     ap.add_argument("--seed", type=int, default=0, help="random seed (default: 0)")
+    for name, what in (("n_before", "before photos"), ("n_after", "after photos"),
+                       ("n_eval", "eval views"), ("width", "image width in pixels"),
+                       ("height", "image height in pixels")):
+        ap.add_argument("--" + name.replace("_", "-"), type=int, default=None,
+                        help=f"{what} (default: the preset's)")
     ap.add_argument("--overwrite", action="store_true",
                     help="replace the output folder if it exists and is not empty")
     args = ap.parse_args(argv)
     try:
-        out = make_scene(args.out, args.preset, args.seed, args.overwrite)
+        preset = SynthOptions(preset=args.preset, n_before=args.n_before, n_after=args.n_after,
+                              n_eval=args.n_eval, width=args.width,
+                              height=args.height).to_preset()
+        out = make_scene(args.out, preset, args.seed, args.overwrite)
     except GdiffError as e:
         print(f"gdiff synth: error: {e}", file=sys.stderr)
         return 1

@@ -16,7 +16,11 @@ Conventions
                  "time": 0 | 1,
                  "c2w": [[4x4]]}, ...]}
 
-A frame may carry its own ``fx, fy, cx, cy, width, height`` when images differ in intrinsics.
+A frame may carry its own ``fx, fy, cx, cy, width, height`` when images differ in intrinsics
+(input ``cameras.json`` only: photos from different cameras). The poses stage's output always
+has one shared camera: it resamples such photos to one common pinhole camera (see
+:mod:`gdiff.sfm.resample`) and names the folder of the resampled photos in ``"image_dir"``
+(below), so later stages can rely on one image size and one ``K``.
 
 Lens distortion (input ``cameras.json`` only): ``"distortion": [k1, k2, p1, p2(, k3)]`` (OpenCV
 plumb-bob / Brown-Conrady coefficients, as in ROS CameraInfo ``D``; or a dict with those keys),
@@ -173,8 +177,8 @@ def parse_distortion(value, source: str, where: str) -> tuple[float, ...] | None
 
 def image_root(scene_dir: str | Path | None, cameras_json: str | Path | None) -> Path | None:
     """The folder holding the images named in ``cameras_json`` (or ``sequence/poses.json``):
-    its ``image_dir`` (relative to the file; the poses stage's undistorted photos) when set,
-    else ``scene_dir``."""
+    its ``image_dir`` (relative to the file; the poses stage's undistorted, resampled or
+    upright photos) when set, else ``scene_dir``."""
     if cameras_json is not None:
         data = read_json(cameras_json)
         if data.get("image_dir"):

@@ -39,7 +39,10 @@ def validate_main(argv=None) -> int:
     counts: dict[str, int] = {}
     for rec in m["images"]:
         counts[rec["set"]] = counts.get(rec["set"], 0) + 1
-    print(f"{args.scene}: OK, {m['width']}x{m['height']} px, "
+    sizes = " / ".join(f"{w}x{h}" for w, h in m["sizes"])
+    print(f"{args.scene}: OK, {sizes} px"
+          + (" (different cameras: the poses stage resamples them to one)"
+             if len(m["sizes"]) > 1 else "") + ", "
           + ", ".join(f"{k}: {v}" for k, v in counts.items()))
     return 0
 

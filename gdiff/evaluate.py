@@ -65,7 +65,8 @@ from .baselines import (MethodNotApplicable, Prediction, as_prediction, idcompar
                         partition_method, pixel_diff_method)
 from .cameras import Camera, image_root, load_cameras
 from .errors import ConfigError, SceneError
-from .io import read_image, read_json, read_mask, write_csv, write_image, write_mask
+from .io import (imread_upright, read_image, read_json, read_mask, write_csv, write_image,
+                 write_mask)
 from .scene import list_images
 from .log import progress
 from .metrics import aggregate, gt_box_scores, object_regions, object_scores, score_view
@@ -321,7 +322,8 @@ def read_boxes(path: str | Path) -> dict[str, np.ndarray]:
 
 
 def _image_size(path: Path) -> tuple[int, int]:
-    img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    """``(width, height)`` of the upright image (EXIF orientation applied)."""
+    img = imread_upright(path)
     if img is None:
         raise SceneError(f"{path}: cannot be read as an image")
     return int(img.shape[1]), int(img.shape[0])

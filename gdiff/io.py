@@ -3,6 +3,11 @@
 All stage outputs are written through :func:`atomic_path` (write to a temporary file in the same
 folder, then ``os.replace``), so a reader never sees a half-written file, even if the process is
 killed mid-write.
+
+Photos and masks are read *upright*: a file's EXIF orientation tag (phones store portrait
+photos as landscape pixels plus a tag) is applied on reading (:data:`IMREAD_UPRIGHT`), so every
+stage sees the image as a viewer shows it and sizes are the upright sizes. COLMAP ignores the
+tag; the poses stage gives it upright copies (see :mod:`gdiff.sfm.upright`).
 """
 
 from __future__ import annotations
@@ -10,6 +15,7 @@ from __future__ import annotations
 import contextlib
 import json
 import os
+import shutil
 import tempfile
 from pathlib import Path
 from typing import Any, Iterator
@@ -20,6 +26,31 @@ import numpy as np
 from .errors import SceneError
 
 IMAGE_EXTENSIONS = (".png", ".jpg", ".jpeg", ".PNG", ".JPG", ".JPEG")
+
+# cv2.imread flags for photos and masks: bit depth and channel count as stored (grey stays grey,
+# 16 bit stays 16 bit, an alpha channel is dropped) with the EXIF orientation applied.
+# cv2.IMREAD_UNCHANGED would ignore the orientation tag.
+IMREAD_UPRIGHT = cv2.IMREAD_ANYDEPTH | cv2.IMREAD_ANYCOLOR
+EXIF_ORIENTATION_TAG = 0x0112
+
+
+def imread_upright(path: str | os.PathLike) -> np.ndarray | None:
+    """``cv2.imread`` of ``path`` with :data:`IMREAD_UPRIGHT`: BGR or grey [H, W(, 3)] as
+    displayed (EXIF orientation applied); None when the file cannot be decoded."""
+    return cv2.imread(str(path), IMREAD_UPRIGHT)
+
+
+def exif_orientation(path: str | os.PathLike) -> int:
+    """The EXIF orientation tag of an image file (1..8; 1 = stored upright, also when the file
+    has no tag or no EXIF block). 5..8 swap width and height."""
+    from PIL import Image
+
+    try:
+        with Image.open(path) as im:
+            value = im.getexif().get(EXIF_ORIENTATION_TAG, 1)
+    except (OSError, ValueError, SyntaxError):
+        return 1
+    return int(value) if value in range(1, 9) else 1
 
 
 @contextlib.contextmanager
@@ -43,6 +74,20 @@ def atomic_path(path: str | os.PathLike, suffix: str | None = None) -> Iterator[
         with contextlib.suppress(FileNotFoundError):
             tmp.unlink()
         raise
+
+
+def link_or_copy(src: str | os.PathLike, dst: str | os.PathLike) -> None:
+    """Make ``dst`` the same file as ``src``: a hard link, else a copy (replacing ``dst``
+    atomically)."""
+    src, dst = Path(src), Path(dst)
+    dst.parent.mkdir(parents=True, exist_ok=True)
+    tmp = dst.with_name(f".{dst.name}.tmp")
+    tmp.unlink(missing_ok=True)
+    try:
+        os.link(src, tmp)
+    except OSError:
+        shutil.copyfile(src, tmp)
+    os.replace(tmp, dst)
 
 
 def write_text(path: str | os.PathLike, text: str) -> None:
@@ -87,11 +132,11 @@ def read_image(path: str | os.PathLike) -> np.ndarray:
     """Read an 8- or 16-bit PNG/JPEG as float32 RGB in [0, 1], shape [H, W, 3].
 
     Values are the file's encoded (sRGB) values scaled to [0, 1]; an alpha channel is dropped,
-    a grey image is repeated to three channels. Raises :class:`SceneError` naming the file if it
-    cannot be decoded.
+    a grey image is repeated to three channels, the EXIF orientation is applied (the image as
+    displayed). Raises :class:`SceneError` naming the file if it cannot be decoded.
     """
     path = Path(path)
-    img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    img = imread_upright(path)
     if img is None:
         if not path.exists():
             raise SceneError(f"{path}: image file not found")
@@ -103,8 +148,6 @@ def read_image(path: str | os.PathLike) -> np.ndarray:
     img = img.astype(np.float32) / scale
     if img.ndim == 2:
         img = np.repeat(img[:, :, None], 3, axis=2)
-    elif img.shape[2] == 4:
-        img = img[:, :, :3]
     return np.ascontiguousarray(img[:, :, ::-1])
 
 
@@ -121,9 +164,10 @@ def write_image(path: str | os.PathLike, img: np.ndarray) -> None:
 
 
 def read_mask(path: str | os.PathLike) -> np.ndarray:
-    """Read a mask PNG as bool [H, W] (any non-zero value = True)."""
+    """Read a mask PNG as bool [H, W] (any non-zero colour value = True; an alpha channel is
+    ignored; EXIF orientation applied as for photos)."""
     path = Path(path)
-    m = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    m = imread_upright(path)
     if m is None:
         raise SceneError(f"{path}: mask cannot be read (missing or corrupt)")
     if m.ndim == 3:

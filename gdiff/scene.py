@@ -14,6 +14,10 @@ A scene folder holds::
     cameras.json | transforms.json
                                 optional known poses (else COLMAP registers the images)
 
+Images may come from different cameras (sizes, aspect ratios, focal lengths may differ between
+and within the sets; the poses stage resamples them to one common camera) and may carry an
+EXIF orientation tag (read upright everywhere). An eval mask has the size of its eval image.
+
 Instead of the photos of ``before/`` or ``after/``, a set may be a video: ``before.mp4`` (any
 of :data:`gdiff.video.VIDEO_EXTENSIONS`) or one video inside ``before/``. The manifest stage
 (:func:`write_manifest`) turns it into photos under ``results/<scene>/input/images/`` (see
@@ -35,9 +39,7 @@ The ``scenes`` config key names what to run on (see :func:`discover_scenes`):
 from __future__ import annotations
 
 import hashlib
-import os
 import re
-import shutil
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -47,7 +49,7 @@ import numpy as np
 import yaml
 
 from .errors import ConfigError, SceneError
-from .io import IMAGE_EXTENSIONS, read_json, write_json
+from .io import IMAGE_EXTENSIONS, IMREAD_UPRIGHT, link_or_copy, read_json, write_json
 from .video import InputOptions, extract_frames, find_video, is_video, video_info
 
 MIN_IMAGES = 3
@@ -217,9 +219,10 @@ def read_scene_sheet(path: str | Path) -> dict[str, SceneSpec]:
 
 def _size_and_sha1(path: Path) -> tuple[int, int, str]:
     """(width, height, sha1) of an image, read once and decoded fully so corrupt files are
-    caught here."""
+    caught here; the size is that of the upright image (EXIF orientation applied, as every
+    stage reads it, see :data:`gdiff.io.IMREAD_UPRIGHT`)."""
     data = path.read_bytes()
-    img = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED)
+    img = cv2.imdecode(np.frombuffer(data, np.uint8), IMREAD_UPRIGHT)
     if img is None:
         raise SceneError(f"{path}: cannot be decoded as an image (corrupt, truncated or not an "
                          "image); replace or remove the file")
@@ -229,8 +232,12 @@ def _size_and_sha1(path: Path) -> tuple[int, int, str]:
 def validate_scene(scene_dir: str | Path) -> dict:
     """Check a scene folder and return its manifest (see module docstring for the rules).
 
-    Manifest: ``{"scene": path, "width", "height", "images": [{"path": rel, "set": before|after|
-    eval_before|eval_after|eval_mask, "width", "height", "sha1"}], "eval_views": [stems]}``.
+    Manifest: ``{"scene": path, "width", "height", "sizes", "images": [{"path": rel, "set":
+    before|after|eval_before|eval_after|eval_mask, "width", "height", "sha1"}], "eval_views":
+    [stems]}``. Image sizes are those of the images as displayed (EXIF orientation applied) and
+    may differ between images (photos from different cameras; the poses stage resamples them
+    to one camera); ``sizes`` lists the distinct ``[width, height]`` in order of appearance and
+    the top-level ``width``/``height`` are the shared size, or null when sizes differ.
     Raises :class:`SceneError` naming the folder or file and the fix.
     """
     root = Path(scene_dir)
@@ -284,23 +291,36 @@ def validate_scene(scene_dir: str | Path) -> dict:
         if extra:
             raise SceneError(f"{ev / 'masks'}: mask(s) {', '.join(sorted(extra))} have no "
                              "eval/before and eval/after images")
-    size = None
     for rec in images:
         if rec.get("video"):
             w, h = rec["width"], rec["height"]
             sha1 = hashlib.sha1((root / rec["path"]).read_bytes()).hexdigest()
         else:
             w, h, sha1 = _size_and_sha1(root / rec["path"])
-        rec["width"], rec["height"] = w, h
-        if size is None:
-            size = (w, h, rec["path"])
-        elif (w, h) != size[:2]:
-            raise SceneError(f"{root / rec['path']}: size {w}x{h} differs from {size[2]} "
-                             f"({size[0]}x{size[1]}); all images of a scene must have the same "
-                             "size (resize them, or split the scene)")
-        rec["sha1"] = sha1
-    return {"scene": str(root.resolve()), "width": size[0], "height": size[1],
-            "images": images, "eval_views": eval_views}
+        rec["width"], rec["height"], rec["sha1"] = w, h, sha1
+    _check_eval_mask_sizes(root, images)
+    sizes = list(dict.fromkeys((r["width"], r["height"]) for r in images))
+    one = sizes[0] if len(sizes) == 1 else (None, None)
+    return {"scene": str(root.resolve()), "width": one[0], "height": one[1],
+            "sizes": [list(s) for s in sizes], "images": images, "eval_views": eval_views}
+
+
+def _check_eval_mask_sizes(root: Path, images: list[dict]) -> None:
+    """Every eval mask has the size of its view's eval/after image or of its eval/before
+    image (the poses stage resamples it with the camera of that image)."""
+    by_stem: dict[str, dict[str, dict]] = {}
+    for rec in images:
+        if rec["set"] in ("eval_before", "eval_after", "eval_mask"):
+            by_stem.setdefault(Path(rec["path"]).stem, {})[rec["set"]] = rec
+    for stem, recs in by_stem.items():
+        mask = recs["eval_mask"]
+        shown = {(r["width"], r["height"]): r["path"] for k, r in recs.items() if k != "eval_mask"}
+        if (mask["width"], mask["height"]) not in shown:
+            have = ", ".join(f"{p} is {w}x{h}" for (w, h), p in shown.items())
+            raise SceneError(f"{root / mask['path']}: mask is {mask['width']}x{mask['height']} "
+                             f"but {have}; a ground-truth mask must have the size of its eval "
+                             "image (as displayed, EXIF orientation applied): resize the mask "
+                             "to it")
 
 
 IMAGES_DIR = "images"  # beside the manifest: the scene's images when a set is a video
@@ -330,28 +350,16 @@ def write_manifest(scene_dir: str | Path, out_path: str | Path, options=None) ->
                                    "video": rec["path"]})
             else:
                 if not rec["set"].startswith("eval"):  # eval/ is linked whole below
-                    _link(root / rec["path"], out_root / rec["path"])
+                    link_or_copy(root / rec["path"], out_root / rec["path"])
                 images.append(rec)
         if (root / "eval").is_dir():  # eval images, masks and any other ground truth
             for f in sorted((root / "eval").rglob("*")):
                 if f.is_file():
-                    _link(f, out_root / f.relative_to(root))
+                    link_or_copy(f, out_root / f.relative_to(root))
         manifest["images"] = images
         manifest["image_root"] = IMAGES_DIR
     write_json(out_path, manifest)
     return manifest
-
-
-def _link(src: Path, dst: Path) -> None:
-    """``dst`` the same file as ``src``: a hard link, else a copy (replacing ``dst``)."""
-    dst.parent.mkdir(parents=True, exist_ok=True)
-    tmp = dst.with_name(f".{dst.name}.tmp")
-    tmp.unlink(missing_ok=True)
-    try:
-        os.link(src, tmp)
-    except OSError:
-        shutil.copyfile(src, tmp)
-    os.replace(tmp, dst)
 
 
 def manifest_image_root(manifest_path: str | Path, scene_dir: str | Path) -> Path:

@@ -68,11 +68,15 @@ def test_corrupt_image_named(tmp_path):
         validate_scene(root)
 
 
-def test_mixed_sizes_named(tmp_path):
+def test_mixed_sizes_recorded(tmp_path):
+    """Photos of different sizes (other cameras) are accepted; the poses stage resamples them
+    (tests/test_mixed.py)."""
     root = make_scene(tmp_path / "s")
     _img(root / "after" / "002.png", 64, 32)
-    with pytest.raises(SceneError, match=r"002.png: size 64x32 differs"):
-        validate_scene(root)
+    m = validate_scene(root)
+    rec = next(r for r in m["images"] if r["path"] == "after/002.png")
+    assert (rec["width"], rec["height"]) == (64, 32)
+    assert m["sizes"] == [[48, 32], [64, 32]] and m["width"] is None
 
 
 def test_eval_view_without_mask(tmp_path):

@@ -10,12 +10,11 @@ import tempfile
 from datetime import datetime, timezone
 from pathlib import Path
 
-import cv2
 import numpy as np
 
 from ..cameras import SET_TIME, Camera, save_cameras
 from ..errors import SceneError
-from ..io import IMAGE_EXTENSIONS, read_mask, write_json, write_mask
+from ..io import IMAGE_EXTENSIONS, imread_upright, read_mask, write_json, write_mask
 
 log = logging.getLogger("gdiff.importers")
 
@@ -61,8 +60,8 @@ def trailing_index(name: str) -> int | None:
 
 
 def image_size(path: Path) -> tuple[int, int]:
-    """``(width, height)`` of an image file."""
-    img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    """``(width, height)`` of an image file, upright (EXIF orientation applied)."""
+    img = imread_upright(path)
     if img is None:
         raise SceneError(f"{path}: cannot be decoded as an image")
     return img.shape[1], img.shape[0]

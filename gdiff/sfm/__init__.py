@@ -2,8 +2,8 @@
 
 Two sources of poses:
 
-* ``colmap`` — SIFT features, matching and incremental mapping with pycolmap. All images share
-  one pinhole camera when their sizes match. Matching is exhaustive for small image sets; for
+* ``colmap`` — SIFT features, matching and incremental mapping with pycolmap. Images of one
+  size share one pinhole camera. Matching is exhaustive for small image sets; for
   large ones a vocabulary-free pair list is used: neighbours in capture order inside each set
   (with wrap-around, for orbits) plus evenly spaced links from every image into every set, so
   the before, after and eval sets are tied together without a vocabulary tree file.
@@ -22,7 +22,15 @@ Two sources of poses:
   (:mod:`gdiff.sfm.undistort`) and later stages read them from ``images/``.
 
 With ``camera_model`` OPENCV / RADIAL / SIMPLE_RADIAL, COLMAP estimates the distortion and the
-photos are undistorted the same way. When triangulation leaves fewer than
+photos are undistorted the same way.
+
+Photos from different cameras: COLMAP gives each image size one camera (known poses may give
+per-frame intrinsics); when the registered cameras do not share one size, intrinsics and
+distortion, every photo is resampled once to one common pinhole camera
+(:mod:`gdiff.sfm.resample`; distortion removed in the same step) into ``images/``, and the
+sparse model follows. Photos with an EXIF orientation tag are given to COLMAP as upright copies
+(:mod:`gdiff.sfm.upright`: pycolmap ignores the tag; every gdiff stage reads photos upright);
+without further resampling those copies are the ``images/`` of later stages. When triangulation leaves fewer than
 ``min_points_per_image`` points per image, points seeded in the camera frusta
 (:mod:`gdiff.sfm.seed`) are added to ``points.ply`` so a fit never starts from a handful.
 
@@ -30,8 +38,9 @@ Outputs in ``out_dir`` (written in a temporary folder inside ``out_dir`` and mov
 end; ``cameras.json`` last, so its presence means the stage finished):
 
 * ``sparse/0/`` — the COLMAP binary model (cameras, images, points3D),
-* ``images/`` — undistorted photos under their scene-relative paths (only when a camera had
-  distortion; ``cameras.json`` then has ``"image_dir": "images"``),
+* ``images/`` — undistorted, resampled or upright photos (and eval masks) under their
+  scene-relative paths (only when a camera had distortion, the cameras differed or a photo had
+  an EXIF orientation tag; ``cameras.json`` then has ``"image_dir": "images"``),
 * ``points.ply`` — sparse points (and seeded ones, see above), binary little-endian ``x y z`` float32 +
   ``red green blue`` uint8,
 * ``cameras.json`` — see :mod:`gdiff.cameras` (c2w in OpenCV axes, pixel centres at +0.5,

@@ -15,6 +15,7 @@ from ..errors import PosesError
 from .images import _check_unregistered, _count
 from .options import PosesOptions
 from .pairs import sequential_pairs
+from .resample import shares_one_camera
 
 log = logging.getLogger("gdiff.sfm")
 
@@ -59,6 +60,17 @@ def extraction_scale(sizes: dict[str, tuple[int, int]], max_image_size: int) -> 
     if max_image_size <= 0 or longest <= max_image_size:
         return 1.0
     return longest / float(max_image_size)
+
+
+def size_groups(names: list[str], sizes: dict[str, tuple[int, int]]
+                ) -> dict[tuple[int, int], list[str]]:
+    """The image names grouped by ``(width, height)``, in order of appearance: COLMAP gives
+    each group one camera (photos of one size are taken as one camera's; a camera per photo
+    leaves each focal length to a handful of matches and fails on small photos)."""
+    groups: dict[tuple[int, int], list[str]] = {}
+    for n in names:
+        groups.setdefault(tuple(sizes[n]), []).append(n)
+    return groups
 
 
 def _match(db: Path, work: Path, opts: PosesOptions, pairs: list[tuple[str, str]] | None,
@@ -211,12 +223,14 @@ def _run_colmap(root: Path, work: Path, images, sizes, opts: PosesOptions):
 
     names = [n for n, _ in images]
     db = work / "database.db"
-    single = len(set(sizes.values())) == 1
-    if not single:
-        log.info("images differ in size: one camera per image")
+    groups = size_groups(names, sizes)
+    if len(groups) > 1:
+        log.info("images differ in size: one camera per size (%s)",
+                 ", ".join(f"{w}x{h}: {len(g)} images" for (w, h), g in groups.items()))
     pycolmap.set_random_seed(opts.seed)
     scale = extraction_scale(sizes, opts.max_image_size)
-    _extract(db, root, names, opts, single_camera=single)
+    for group in groups.values():  # each extraction adds one shared camera
+        _extract(db, root, group, opts, single_camera=True)
     matcher = opts.matcher
     if matcher == "auto":
         matcher = "exhaustive" if len(names) <= opts.exhaustive_max_images else "sequential"
@@ -272,7 +286,8 @@ def _run_colmap(root: Path, work: Path, images, sizes, opts: PosesOptions):
                "num_models": len(models), "mapper_attempts": attempts,
                "num_points": int(rec.num_points3D()),
                "mean_reprojection_error": float(rec.compute_mean_reprojection_error()),
-               "refinement": refine}
+               "refinement": refine, "undistorted": any(c.dist is not None for c in cams),
+               "resampled": not shares_one_camera(cams)}
     return cams, rec, summary, None
 
 

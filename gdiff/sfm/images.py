@@ -9,7 +9,7 @@ from pathlib import Path
 
 from ..cameras import SETS
 from ..errors import PosesError, SceneError
-from ..io import IMAGE_EXTENSIONS
+from ..io import IMAGE_EXTENSIONS, exif_orientation
 
 log = logging.getLogger("gdiff.sfm")
 
@@ -46,16 +46,18 @@ def discover_images(scene_dir: str | os.PathLike) -> list[tuple[str, str]]:
 
 
 def _image_sizes(scene_dir: Path, names: list[str]) -> dict[str, tuple[int, int]]:
-    """(width, height) per image, read from the file headers only."""
+    """(width, height) per image as displayed (EXIF orientation 5..8 swaps the stored size),
+    read from the file headers only."""
     from PIL import Image
 
     sizes = {}
     for n in names:
         try:
             with Image.open(scene_dir / n) as im:
-                sizes[n] = im.size
+                w, h = im.size
         except (OSError, ValueError):
             raise SceneError(f"{scene_dir / n}: cannot be read as an image") from None
+        sizes[n] = (h, w) if exif_orientation(scene_dir / n) >= 5 else (w, h)
     return sizes
 
 

@@ -16,7 +16,7 @@ from .colmap import _extract, _mapper_options, _match, extraction_scale
 from .images import _check_unregistered, _count, set_from_path
 from .options import PosesOptions
 from .pairs import proximity_pairs
-from .undistort import undistort_scene
+from .resample import shares_one_camera, to_one_pinhole
 
 log = logging.getLogger("gdiff.sfm")
 
@@ -75,8 +75,9 @@ def _match_known(known: list[Camera], images: list[tuple[str, str]], src: Path,
             continue
         w, h = sizes[name]
         if (c.width, c.height) != (w, h):
-            raise PosesError(f"{src}: image {name} is {w}x{h} but its known camera says "
-                             f"{c.width}x{c.height}; give intrinsics for the images as stored")
+            raise PosesError(f"{src}: image {name} is {w}x{h} (as displayed, EXIF orientation "
+                             f"applied) but its known camera says {c.width}x{c.height}; give "
+                             "the intrinsics of each image as displayed")
         out[name] = Camera(c.width, c.height, c.fx, c.fy, c.cx, c.cy, c.c2w.copy(), image=name,
                            set=st, time=SET_TIME[st], dist=c.dist)
     return out
@@ -117,11 +118,12 @@ def _known_reconstruction(db: Path, cams: dict[str, Camera]):
 
 
 def _run_known(root: Path, work: Path, images, sizes, known, opts: PosesOptions):
-    """Known poses: undistort the photos if the cameras carry distortion (into
-    ``work/images``), then triangulate matched features with the poses held fixed.
+    """Known poses: bring the photos (in ``root``) to one pinhole camera if the cameras carry
+    distortion or differ (:func:`gdiff.sfm.resample.to_one_pinhole`, into ``work/images``),
+    then triangulate matched features with the poses held fixed.
 
     Returns ``(cameras, reconstruction, summary, image_dir)``; ``image_dir`` is ``"images"``
-    when undistorted photos were written, else None."""
+    when undistorted or resampled photos were written, else None."""
     import pycolmap
 
     known_cams, src = known
@@ -134,10 +136,14 @@ def _run_known(root: Path, work: Path, images, sizes, known, opts: PosesOptions)
     names = [n for n, _ in images_k]
     cams = [matched[n] for n in names]
     image_dir = None
-    if any(c.dist is not None for c in cams):
+    lens = {"undistorted": any(c.dist is not None for c in cams),
+            "resampled": not shares_one_camera(cams)}
+    if lens["undistorted"]:
         log.info("%s gives lens distortion: undistorting the photos", src)
-        cams = undistort_scene(root, work / "images", cams)
+    cams, written = to_one_pinhole(root, work / "images", cams, opts.resample_max_side)
+    if written:
         matched = dict(zip(names, cams))
+        sizes = {n: (c.width, c.height) for n, c in matched.items()}
         root, image_dir = work / "images", "images"
     intr = {(c.width, c.height, c.fx, c.fy, c.cx, c.cy) for c in cams}
     single = len(intr) == 1
@@ -174,5 +180,5 @@ def _run_known(root: Path, work: Path, images, sizes, known, opts: PosesOptions)
     summary = {"source": "known", "matcher": matcher, "images": _count(images),
                "registered": _count(images, set(names)), "dropped": dropped,
                "num_models": 1, "num_points": int(rec.num_points3D()),
-               "mean_reprojection_error": float(rec.compute_mean_reprojection_error())}
+               "mean_reprojection_error": float(rec.compute_mean_reprojection_error()), **lens}
     return cams, rec, summary, image_dir

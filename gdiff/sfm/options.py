@@ -29,6 +29,11 @@ class PosesOptions:
             take their distortion from cameras.json / transforms.json instead.
         max_image_size: longer image side for feature extraction (larger images are
             downscaled for SIFT; poses and intrinsics stay in full-resolution pixels).
+        resample_max_side: photos from different cameras (sizes, aspect ratios, focal
+            lengths differ) are resampled once into ``poses/images/`` to one common pinhole
+            camera: the field of view all photos cover at the pixel density of the finest
+            photo, its longer side capped at this many pixels (0 = no cap). Later stages work
+            at ``fit.max_side`` anyway; a cap near it saves disk and reading time.
         max_num_features: SIFT features per image.
         domain_size_pooling: DSP-SIFT descriptors (pooled over several patch sizes): more
             distinctive under lighting change and on small images, fewer false matches; about
@@ -73,6 +78,7 @@ class PosesOptions:
     sequential_links: int = 6
     camera_model: str = "PINHOLE"
     max_image_size: int = 1600
+    resample_max_side: int = 1600
     max_num_features: int = 8192
     domain_size_pooling: bool = False
     min_num_matches: int = 15
@@ -105,5 +111,7 @@ class PosesOptions:
         if self.min_points_per_image < 0 or self.seed_points_per_image < 1:
             raise ValueError("min_points_per_image must be >= 0 and seed_points_per_image "
                              ">= 1")
+        if self.resample_max_side < 0:
+            raise ValueError("resample_max_side must be >= 0 (pixels; 0 = no cap)")
         if self.refine_iterations < 0 or self.mapper_attempts < 1:
             raise ValueError("refine_iterations must be >= 0 and mapper_attempts >= 1")

@@ -19,10 +19,14 @@ from .colmap import _colmap_logging, _points_of, _run_colmap
 from .images import _count, _image_sizes, discover_images
 from .known import _run_known, _strip, load_known_cameras
 from .options import PosesOptions
+from .resample import to_one_pinhole
 from .seed import depth_range, seed_frustum_points
-from .undistort import undistort_reconstruction, undistort_scene
+from .undistort import undistort_reconstruction
+from .upright import tagged_images, write_upright_copies
 
 log = logging.getLogger("gdiff.sfm")
+
+UPRIGHT = "upright"  # in the work folder: upright copies of EXIF-rotated photos (for COLMAP)
 
 
 def run_poses(scene_dir: str | os.PathLike, out_dir: str | os.PathLike,
@@ -46,7 +50,11 @@ def run_poses(scene_dir: str | os.PathLike, out_dir: str | os.PathLike,
         Summary dict: ``source`` (colmap | known), ``matcher``, ``images`` and ``registered``
         (counts per set), ``dropped`` (image names), ``num_models``, ``num_points`` (in the
         sparse model), ``num_points_triangulated`` and ``num_points_seeded`` (in points.ply;
-        see :mod:`gdiff.sfm.seed`), ``undistorted`` (photos written to ``images/``),
+        see :mod:`gdiff.sfm.seed`), ``undistorted`` (some photo had lens distortion),
+        ``resampled`` (the photos' cameras differed: resampled to one common camera, see
+        :mod:`gdiff.sfm.resample`), ``upright`` (photos with an EXIF orientation tag, given
+        to COLMAP as upright copies, see :mod:`gdiff.sfm.upright`), ``image_dir`` (the folder
+        of the photos to use, relative to ``out_dir``, or None for the scene's own),
         ``mean_reprojection_error`` (pixels), ``seconds``; for COLMAP also
         ``mapper_attempts`` and ``refinement`` (see :func:`refine_model`).
 
@@ -65,6 +73,7 @@ def run_poses(scene_dir: str | os.PathLike, out_dir: str | os.PathLike,
                          f"use {', '.join(SETS)}")
     names = [n for n, _ in images]
     photos = Path(image_root) if image_root is not None else root
+    photo_dir = None if photos == root else os.path.relpath(photos, out)
     sizes = _image_sizes(photos, names)
     counts = _count(images)
     log.info("poses for %s: %d images (%s)", root, len(images),
@@ -77,26 +86,28 @@ def run_poses(scene_dir: str | os.PathLike, out_dir: str | os.PathLike,
             raise PosesError(f"{root}: poses.source is 'known' but the scene has no "
                              "cameras.json or transforms.json; add one or set "
                              "poses.source: colmap")
-        if known is not None and photos != root:
+        if known is not None and photo_dir is not None:
             raise PosesError(f"{root}: known poses (cameras.json / transforms.json) cannot name "
                              "frames picked from a video; give photos with their poses, or "
                              "remove the poses file so that COLMAP registers the frames")
     out.mkdir(parents=True, exist_ok=True)
     work = Path(tempfile.mkdtemp(prefix=".poses_work_", dir=out))
     try:
+        n_upright = 0
+        if tagged_images(photos, names):
+            n_upright = write_upright_copies(photos, work / UPRIGHT, images)
+            photos = work / UPRIGHT
         with _colmap_logging(opts.colmap_log):
             if known is not None:
-                result = _run_known(root, work, images, sizes, known, opts)
+                result = _run_known(photos, work, images, sizes, known, opts)
             else:
                 result = _run_colmap(photos, work, images, sizes, opts)
         cams, rec, summary, image_dir = result
-        if image_dir is None and any(c.dist is not None for c in cams):
-            log.info("COLMAP estimated lens distortion (%s): undistorting the photos",
-                     opts.camera_model)
-            pinholes = undistort_scene(photos, work / "images", cams)
-            undistort_reconstruction(rec, {c.image: c for c in cams},
-                                     {c.image: c for c in pinholes})
-            cams, image_dir = pinholes, "images"
+        if image_dir is None:
+            cams, image_dir = _one_pinhole(photos, work, cams, rec, opts)
+        if image_dir is None and n_upright:  # the upright copies are the photos to use
+            os.replace(work / UPRIGHT, work / "images")
+            image_dir = "images"
         xyz, rgb = _points_of(rec)
         n_tri = len(xyz)
         n_min = opts.min_points_per_image * len(cams)
@@ -111,15 +122,14 @@ def run_poses(scene_dir: str | os.PathLike, out_dir: str | os.PathLike,
                      n_seed, near, far, how)
             xyz, rgb = np.concatenate([xyz, sx]), np.concatenate([rgb, sc])
         summary.update(num_points_triangulated=n_tri, num_points_seeded=n_seed,
-                       undistorted=image_dir is not None)
+                       upright=n_upright, image_dir=image_dir)
         log.info("initial points: %d triangulated, %d seeded in the camera frusta", n_tri,
                  n_seed)
         write_points(work / "points.ply", xyz, rgb)
         model_dir = work / "sparse" / "0"
         model_dir.mkdir(parents=True, exist_ok=True)
         rec.write_binary(str(model_dir))
-        _commit(work, out, cams, image_dir,
-                None if photos == root else os.path.relpath(photos, out))
+        _commit(work, out, cams, image_dir, photo_dir)
     finally:
         shutil.rmtree(work, ignore_errors=True)
     summary["seconds"] = round(time.time() - t0, 2)
@@ -127,6 +137,22 @@ def run_poses(scene_dir: str | os.PathLike, out_dir: str | os.PathLike,
              "%.1f s", summary["registered"], summary["images"], summary["num_points"],
              summary["mean_reprojection_error"], summary["seconds"])
     return summary
+
+
+def _one_pinhole(photos: Path, work: Path, cams: list[Camera], rec, opts: PosesOptions
+                 ) -> tuple[list[Camera], str | None]:
+    """COLMAP's cameras -> one pinhole camera: when they differ (one camera per image, photos
+    of different sizes) or carry estimated distortion, the photos are resampled / undistorted
+    into ``work/images`` (:func:`gdiff.sfm.resample.to_one_pinhole`) and the sparse model
+    ``rec`` is converted to them in place. Returns ``(cameras, image_dir or None)``."""
+    if any(c.dist is not None for c in cams):
+        log.info("COLMAP estimated lens distortion (%s): undistorting the photos",
+                 opts.camera_model)
+    new, written = to_one_pinhole(photos, work / "images", cams, opts.resample_max_side)
+    if not written:
+        return cams, None
+    undistort_reconstruction(rec, {c.image: c for c in cams}, {c.image: c for c in new})
+    return new, "images"
 
 
 def _commit(work: Path, out: Path, cams: list[Camera], image_dir: str | None,

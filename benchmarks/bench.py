@@ -16,6 +16,11 @@ synthetic scenes in ``<results>/resources/synth/``. A rerun continues where the 
 ``--jobs`` caps how many jobs run at once (default 1, so rules do not share the cores and their
 times are comparable) within ``--cores``.
 
+Times are only comparable on an otherwise quiet machine. ``nice`` on other work is not enough
+where the kernel groups processes by session (``/proc/sys/kernel/sched_autogroup_enabled`` = 1,
+the default on many Linux systems): a niced job started from another terminal then still gets
+an equal share of the cores, and a 2-core fit runs up to twice as slow.
+
 ``--no-run`` only reads: ``--results`` is then either such a working directory or a
 ``results/`` folder itself (e.g. results).
 

@@ -201,21 +201,30 @@ def test_view_dependent_time_term_gate_and_files_without_it(tmp_path):
     assert torch.equal(back.at_time(0.0).sh[:, 1:], back.at_time(1.0).sh[:, 1:])
 
 
-def test_compiled_lookup_matches_grid_sample_values_and_gradients():
-    """The CPU kernel (positions without gradient) equals the grid_sample reference (used when
-    the positions carry a gradient), for odd plane sizes, points outside the box, t between
-    rows, and a zero texel (the product rule must not divide)."""
+def _random_hexplane(seed, resolution, time_resolution, features, lo, hi):
+    """A two-level HexPlane with random planes and the given box (skips the test when the C++
+    kernel cannot be built)."""
     from gdiff.splat import csrc
 
     if csrc.load(required=False) is None:
         pytest.skip("C++ kernel not available")
-    torch.manual_seed(1)
-    hp = HexPlane(resolution=(7, 5, 4), time_resolution=3, multires=[1, 2], features=3)
+    torch.manual_seed(seed)
+    hp = HexPlane(resolution=resolution, time_resolution=time_resolution, multires=[1, 2],
+                  features=features)
     with torch.no_grad():
         for p in hp.grids:
             p.add_(torch.randn_like(p) * 0.3)
+        hp.set_aabb(torch.tensor(lo), torch.tensor(hi))
+    return hp
+
+
+def test_compiled_lookup_matches_grid_sample_values_and_gradients():
+    """The CPU kernel (positions without gradient) equals the grid_sample reference (used when
+    the positions carry a gradient), for odd plane sizes, points outside the box, t between
+    rows, and a zero texel (the product rule must not divide)."""
+    hp = _random_hexplane(1, (7, 5, 4), 3, 3, [-1.0, -0.5, 0.0], [1.0, 0.5, 2.0])
+    with torch.no_grad():
         hp.grids[0][0, 1, 2, 3] = 0.0
-        hp.set_aabb(torch.tensor([-1.0, -0.5, 0.0]), torch.tensor([1.0, 0.5, 2.0]))
     xyz = torch.rand(400, 3) * torch.tensor([2.6, 1.4, 2.6]) - torch.tensor([1.3, 0.7, 0.3])
     xyz[0] = torch.tensor([0.0 / 3, 0.0, 1.0])
     w = torch.randn(400, 6)
@@ -235,16 +244,7 @@ def test_compiled_lookup_matches_grid_sample_values_and_gradients():
 def test_compiled_lookup_gradient_is_the_same_for_any_thread_count():
     """The backward kernel scatters in parallel over planes: the table gradient must be
     bitwise the same with 1 and 2 threads, over more points than one chunk (4096)."""
-    from gdiff.splat import csrc
-
-    if csrc.load(required=False) is None:
-        pytest.skip("C++ kernel not available")
-    torch.manual_seed(2)
-    hp = HexPlane(resolution=(9, 8, 6), time_resolution=4, multires=[1, 2], features=4)
-    with torch.no_grad():
-        for p in hp.grids:
-            p.add_(torch.randn_like(p) * 0.3)
-        hp.set_aabb(torch.tensor([-1.0, -1.0, -1.0]), torch.tensor([1.0, 1.0, 1.0]))
+    hp = _random_hexplane(2, (9, 8, 6), 4, 4, [-1.0, -1.0, -1.0], [1.0, 1.0, 1.0])
     xyz = torch.rand(9000, 3) * 2 - 1
     w = torch.randn(9000, 8)
     grads = []

@@ -103,13 +103,20 @@ def view_count(points: np.ndarray, views: list[DepthView], depth_tol: float,
 
 
 def nearest_views(points: np.ndarray, views: list[DepthView], depth_tol: float, max_views: int,
-                  stride: int = 61) -> list[DepthView]:
+                  stride: int = 61, spread: bool = False) -> list[DepthView]:
     """The (at most) ``max_views`` of ``views`` that see the most of a frame's surface.
 
     ``points``: the frame's world points [..., 3] (:func:`gdiff.track.world_points`), tested
     with :func:`view_count`'s visibility test on every ``stride``-th point (in memory order).
     Views that see none of them are dropped; ties keep the earlier view. The views keep
     their order. ``max_views`` <= 0 keeps every view that sees some point.
+
+    With ``spread``, the views are picked for parallax as well: among the views that see at
+    least half as much of the frame as the best one, the best one first, then each time the
+    one farthest in direction (seen from the surface's centroid) from those already picked;
+    remaining places go to the next views by share. Photos taken close together along a path
+    share most of a frame but see it from nearly one direction, so the plain ranking can
+    leave every pixel short of the parallax a depth test needs.
     """
     if not views:
         return []
@@ -118,9 +125,34 @@ def nearest_views(points: np.ndarray, views: list[DepthView], depth_tol: float, 
     hits = np.array([_sees(P, finite, v, depth_tol).sum() for v in views])
     order = np.argsort(-hits, kind="stable")
     order = order[hits[order] > 0]
-    if max_views > 0:
-        order = order[:max_views]
+    if max_views > 0 and len(order) > max_views:
+        if spread and finite.any():
+            order = _spread(order, hits, views, P[finite].mean(0), max_views)
+        else:
+            order = order[:max_views]
     return [views[i] for i in sorted(order)]
+
+
+def _spread(order: np.ndarray, hits: np.ndarray, views: list[DepthView], centre: np.ndarray,
+            max_views: int) -> np.ndarray:
+    """``max_views`` of the ranked views ``order`` chosen for direction spread (see
+    :func:`nearest_views`): farthest-point sampling of the unit directions from ``centre`` [3]
+    to the camera centres, over the views with at least half the best view's hits."""
+    d = np.stack([views[i].camera.c2w[:3, 3] - centre for i in order])
+    d /= np.maximum(np.linalg.norm(d, axis=1, keepdims=True), 1e-12)
+    good = hits[order] >= 0.5 * hits[order[0]]
+    chosen = [0]
+    closest = d @ d[0]  # cosine to the nearest chosen direction, per ranked view
+    while len(chosen) < max_views:
+        cand = np.flatnonzero(good)
+        cand = cand[~np.isin(cand, chosen)]
+        if len(cand) == 0:
+            break
+        k = int(cand[np.argmin(closest[cand])])  # argmin keeps the better-ranked on ties
+        chosen.append(k)
+        closest = np.maximum(closest, d @ d[k])
+    rest = [k for k in range(len(order)) if k not in chosen]
+    return order[chosen + rest[:max_views - len(chosen)]]
 
 
 def observed(depth: np.ndarray, camera: Camera, views: list[DepthView], depth_tol: float = 0.05,
@@ -160,7 +192,7 @@ def observed(depth: np.ndarray, camera: Camera, views: list[DepthView], depth_to
     if max_views > 0 and len(views) > max_views:
         # the views that share most of the frame decide most pixels; only the pixels they
         # leave unobserved are tested against every view
-        near = nearest_views(P, views, depth_tol, max_views)
+        near = nearest_views(P, views, depth_tol, max_views, spread=min_parallax > 0)
         if near:
             res = sees(P, near)
         rest = np.flatnonzero(~res)

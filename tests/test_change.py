@@ -373,6 +373,25 @@ def test_nearest_views_bound_the_work_but_not_the_result():
                     min_parallax=20.0).sum() < full.sum()
 
 
+def test_spread_views_are_picked_for_parallax():
+    """``spread``: among views that share most of the frame, the picked ones span the widest
+    directions (the plain ranking takes the best-covering, here the closest together)."""
+    from gdiff.coverage import DepthView, nearest_views
+
+    cam = _plane_camera(0.0)
+    plane = np.full((H, W), 5.0, np.float32)
+    xs = (-1.2, -0.4, -0.2, 0.0, 0.2, 0.4, 1.2, 8.0)  # 8.0 sees little of the frame
+    views = [DepthView(_plane_camera(x), plane.copy()) for x in xs]
+    P = world_points(plane, cam)
+
+    def picked(**kw):
+        return sorted(xs[next(i for i, v in enumerate(views) if v is n)]
+                      for n in nearest_views(P, views, 0.05, 3, stride=1, **kw))
+
+    assert picked() == [-0.2, 0.0, 0.2]
+    assert picked(spread=True) == [-1.2, 0.0, 1.2]
+
+
 def test_unobserved_region_is_not_a_change():
     """Path p1 is rendered at t1 where no after photo looked (its left part): the model renders
     something there (a surface nearer than before) that no photo supports. Only the object

@@ -242,8 +242,8 @@ def test_compiled_lookup_matches_grid_sample_values_and_gradients():
 
 
 def test_compiled_lookup_gradient_is_the_same_for_any_thread_count():
-    """The backward kernel scatters in parallel over planes: the table gradient must be
-    bitwise the same with 1 and 2 threads, over more points than one chunk (4096)."""
+    """The backward kernel scatters parts of the points in parallel into their own tables:
+    the table gradient must be bitwise the same with 1 and 2 threads (9000 points: 2 parts)."""
     hp = _random_hexplane(2, (9, 8, 6), 4, 4, [-1.0, -1.0, -1.0], [1.0, 1.0, 1.0])
     xyz = torch.rand(9000, 3) * 2 - 1
     w = torch.randn(9000, 8)

@@ -84,7 +84,8 @@ def load(required: bool = False, verbose: bool = False):
                     _load(name=name, sources=[str(p) for p in _SOURCES], verbose=verbose,
                           is_python_module=False,
                           extra_cflags=["-O3", "-march=native", "-ffp-contract=off",
-                                        "-fno-math-errno"])
+                                        "-fno-math-errno", "-fopenmp"],
+                          extra_ldflags=["-fopenmp"])
                     _module = torch.ops.gdiff_splat
                 except Exception as e:  # compiler missing, headers missing, build error
                     _failed = f"{type(e).__name__}: {str(e).strip().splitlines()[-1:]}"

@@ -45,9 +45,11 @@ def discover_images(scene_dir: str | os.PathLike) -> list[tuple[str, str]]:
     return out
 
 
-def _image_sizes(scene_dir: Path, names: list[str]) -> dict[str, tuple[int, int]]:
+def _image_sizes(scene_dir: Path, names: list[str],
+                 orientations: dict[str, int] | None = None) -> dict[str, tuple[int, int]]:
     """(width, height) per image as displayed (EXIF orientation 5..8 swaps the stored size),
-    read from the file headers only."""
+    the stored size read from the file headers; ``orientations`` (name -> EXIF tag, e.g. from
+    :func:`gdiff.sfm.upright.orientations`) saves reading the tags again."""
     from PIL import Image
 
     sizes = {}
@@ -57,7 +59,8 @@ def _image_sizes(scene_dir: Path, names: list[str]) -> dict[str, tuple[int, int]
                 w, h = im.size
         except (OSError, ValueError):
             raise SceneError(f"{scene_dir / n}: cannot be read as an image") from None
-        sizes[n] = (h, w) if exif_orientation(scene_dir / n) >= 5 else (w, h)
+        o = orientations[n] if orientations is not None else exif_orientation(scene_dir / n)
+        sizes[n] = (h, w) if o >= 5 else (w, h)
     return sizes
 
 

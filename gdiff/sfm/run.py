@@ -22,7 +22,7 @@ from .options import PosesOptions
 from .resample import to_one_pinhole
 from .seed import depth_range, seed_frustum_points
 from .undistort import undistort_reconstruction
-from .upright import tagged_images, write_upright_copies
+from .upright import orientations, write_upright_copies
 
 log = logging.getLogger("gdiff.sfm")
 
@@ -74,7 +74,8 @@ def run_poses(scene_dir: str | os.PathLike, out_dir: str | os.PathLike,
     names = [n for n, _ in images]
     photos = Path(image_root) if image_root is not None else root
     photo_dir = None if photos == root else os.path.relpath(photos, out)
-    sizes = _image_sizes(photos, names)
+    tags = orientations(photos, names)  # read once: PIL decodes a whole PNG to find its tag
+    sizes = _image_sizes(photos, names, tags)
     counts = _count(images)
     log.info("poses for %s: %d images (%s)", root, len(images),
              ", ".join(f"{k} {v}" for k, v in counts.items()))
@@ -94,7 +95,7 @@ def run_poses(scene_dir: str | os.PathLike, out_dir: str | os.PathLike,
     work = Path(tempfile.mkdtemp(prefix=".poses_work_", dir=out))
     try:
         n_upright = 0
-        if tagged_images(photos, names):
+        if any(o != 1 for o in tags.values()):
             n_upright = write_upright_copies(photos, work / UPRIGHT, images)
             photos = work / UPRIGHT
         with _colmap_logging(opts.colmap_log):

@@ -27,9 +27,14 @@ log = logging.getLogger("gdiff.sfm")
 JPEG_QUALITY = 100  # re-encoded copies are read by every later stage: keep the loss small
 
 
+def orientations(photos: Path, names: list[str]) -> dict[str, int]:
+    """The EXIF orientation tag (1..8, 1 = upright) of each image (relative to ``photos``)."""
+    return {n: exif_orientation(photos / n) for n in names}
+
+
 def tagged_images(photos: Path, names: list[str]) -> list[str]:
     """The images (relative to ``photos``) whose EXIF orientation tag is not 1 (upright)."""
-    return [n for n in names if exif_orientation(photos / n) != 1]
+    return [n for n, o in orientations(photos, names).items() if o != 1]
 
 
 def _eval_masks(photos: Path, images: list[tuple[str, str]]) -> list[str]:

@@ -34,8 +34,7 @@ rule render:
                 subcategory="rendered sequences",
                 labels={"path": path, "time": t},
             )
-            for path in ("p1", "p2")
-            for t in ("t0", "t1")
+            for path, t in FRAME_DIRS
         ],
     params:
         options=options("render"),

@@ -18,7 +18,8 @@ from gdiff.options import from_config
 from gdiff.sfm import (PosesOptions, discover_images, extraction_scale, proximity_pairs,
                        read_cameras_file, refine_model, run_poses, sequential_pairs,
                        set_from_path)
-from gdiff.sfm.colmap import _extract, _mapper_options
+from gdiff.sfm.colmap import _extract, _mapper_options, _read_descriptors
+from gdiff.sfm.pairs import retrieval_pairs, word_histograms
 from gdiff.splat.ply import read_points
 
 
@@ -326,6 +327,55 @@ def test_sequential_pairs_cover_neighbours_and_link_sets():
     assert linked == set(a) | set(b)  # every image has links into the other set
     assert len(pairs) < 40 * 39 // 2 / 2  # far fewer than exhaustive
     assert all(x < y for x, y in pairs)
+
+
+def test_word_histograms_rank_images_of_one_place_first():
+    # three places, each with its own mix of 40 descriptor prototypes; images of a place draw
+    # noisy copies of them and share a background of generic descriptors
+    rng = np.random.default_rng(0)
+    protos = [rng.integers(0, 256, (40, 128)) for _ in range(3)]
+    generic = rng.integers(0, 256, (30, 128))
+    descs, place = [], []
+    for p in range(3):
+        for _ in range(5):
+            pick = np.concatenate([protos[p][rng.integers(0, 40, 150)],
+                                   generic[rng.integers(0, 30, 100)]])
+            descs.append(np.clip(pick + rng.normal(0, 12, pick.shape), 0, 255).astype(np.uint8))
+            place.append(p)
+    v = word_histograms(descs, num_words=64, seed=0)
+    assert v.shape == (15, 64) and np.allclose(np.linalg.norm(v, axis=1), 1.0, atol=1e-5)
+    names = [f"before/{i:03d}.png" for i in range(15)]
+    pairs = retrieval_pairs([names], dict(zip(names, v)), neighbours=4, overlap=0)
+    assert len(pairs) <= 15 * 4
+    same = sum(place[names.index(a)] == place[names.index(b)] for a, b in pairs)
+    assert same == len(pairs)  # 4 neighbours = the other images of its place
+    # capture-order neighbours are added on top
+    with_order = retrieval_pairs([names], dict(zip(names, v)), neighbours=4, overlap=1)
+    assert ("before/004.png", "before/005.png") in with_order
+
+
+def test_retrieval_matching_on_real_features(synth_tiny_dir, gt_tiny, tmp_path):
+    # visual-word similarity of real SIFT features ranks nearby views of the orbit first
+    cams = [c for c in gt_tiny if c.set == "before"]
+    names = [c.image for c in cams]
+    _extract(tmp_path / "db.db", Path(synth_tiny_dir), names, PosesOptions(), True)
+    v = word_histograms(_read_descriptors(tmp_path / "db.db", names), seed=0)
+    sim = v @ v.T
+    ang = np.array([[np.degrees(np.arccos(np.clip(a.c2w[:3, 2] @ b.c2w[:3, 2], -1, 1)))
+                     for b in cams] for a in cams])
+    np.fill_diagonal(sim, -1)
+    best = sim.argmax(axis=1)
+    assert np.median(ang[np.arange(len(cams)), best]) < np.median(ang[ang > 0])
+    # and registration from retrieval pairs alone holds every image
+    summary = run_poses(synth_tiny_dir, tmp_path / "p",
+                        PosesOptions(matcher="retrieval", retrieval_neighbours=4,
+                                     sequential_overlap=1, num_threads=2))
+    assert summary["matcher"] == "retrieval"
+    assert summary["registered"] == summary["images"]
+    n = sum(summary["images"].values())
+    assert PosesOptions().exhaustive_limit() == 2 * (20 + 8) + 1
+    assert PosesOptions(exhaustive_max_images=5).exhaustive_limit() == 5
+    assert n * (n - 1) // 2 > n * 5  # fewer pairs than exhaustive were matched
 
 
 def test_proximity_pairs_prefers_nearby_facing_cameras(gt_tiny):

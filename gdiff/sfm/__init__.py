@@ -4,9 +4,11 @@ Two sources of poses:
 
 * ``colmap`` — SIFT features, matching and incremental mapping with pycolmap. Images of one
   size share one pinhole camera. Matching is exhaustive for small image sets; for
-  large ones a vocabulary-free pair list is used: neighbours in capture order inside each set
-  (with wrap-around, for orbits) plus evenly spaced links from every image into every set, so
-  the before, after and eval sets are tied together without a vocabulary tree file.
+  large ones each image is matched with its most similar images by a bag of visual words
+  learnt from the scene's own SIFT features (k-means, tf-idf; no vocabulary file to download)
+  and with its capture-order neighbours, so the number of pairs grows linearly with the
+  images. A ``sequential`` pair list (capture-order neighbours plus evenly spaced links into
+  every set) is available too.
   Outlier thresholds are ``max_reproj_error`` pixels of the feature-extraction image (COLMAP's
   4 px defaults suit megapixel photos; on 320 px images false matches, e.g. on shadow edges
   that move between before and after, then survive and pull the focal length and rotations).
@@ -51,9 +53,10 @@ from .colmap import extraction_scale, refine_model
 from .images import SET_FOLDERS, discover_images, set_from_path
 from .known import load_known_cameras, read_cameras_file
 from .options import PosesOptions
-from .pairs import proximity_pairs, sequential_pairs
+from .pairs import proximity_pairs, retrieval_pairs, sequential_pairs, word_histograms
 from .run import run_poses
 
 __all__ = ["PosesOptions", "SET_FOLDERS", "discover_images", "extraction_scale",
            "load_known_cameras", "proximity_pairs", "read_cameras_file", "refine_model",
-           "run_poses", "sequential_pairs", "set_from_path"]
+           "retrieval_pairs", "run_poses", "sequential_pairs", "set_from_path",
+           "word_histograms"]

@@ -14,7 +14,7 @@ from ..cameras import SET_TIME, SETS, Camera
 from ..errors import PosesError
 from .images import _check_unregistered, _count
 from .options import PosesOptions
-from .pairs import sequential_pairs
+from .pairs import retrieval_pairs, sequential_pairs, word_histograms
 from .resample import shares_one_camera
 
 log = logging.getLogger("gdiff.sfm")
@@ -96,6 +96,18 @@ def _match(db: Path, work: Path, opts: PosesOptions, pairs: list[tuple[str, str]
                                    verification_options=vo, device=pycolmap.Device.cpu)
 
 
+def _read_descriptors(db: Path, names: list[str]) -> list[np.ndarray]:
+    """The SIFT descriptors (M_i, 128) uint8 of the named images, from the database."""
+    import pycolmap
+
+    d = pycolmap.Database.open(str(db))
+    try:
+        ids = {im.name: im.image_id for im in d.read_all_images()}
+        return [np.asarray(d.read_descriptors(ids[n]).data) for n in names]
+    finally:
+        d.close()
+
+
 def _db_stats(db: Path, min_inliers: int) -> dict:
     """Images, mean keypoints per image and pairs with >= ``min_inliers`` verified matches."""
     import pycolmap
@@ -131,6 +143,11 @@ def _mapper_options(opts: PosesOptions, n_images: int, pixel_scale: float = 1.0,
     mp.multiple_models = True
     mp.extract_colors = True
     mp.ba_refine_principal_point = bool(opts.refine_principal_point)
+    # global BA while the model grows by 40 % (COLMAP: 10 %), one retriangulation round per
+    # BA: the final refinement (:func:`refine_model`) bundle-adjusts everything anyway, and
+    # COLMAP's schedule made mapping grow faster than the image count
+    mp.ba_global_frames_ratio = mp.ba_global_points_ratio = 1.4
+    mp.ba_global_max_refinements = mp.ba_local_max_refinements = 1
     return mp
 
 
@@ -164,6 +181,9 @@ def refine_model(rec, max_error: float, iterations: int, refine_principal_point:
     bo.ceres.loss_function_type = pycolmap.LossFunctionType.CAUCHY
     bo.ceres.loss_function_scale = 0.5 * max_error
     bo.ceres.solver_options.num_threads = num_threads
+    # stop when an iteration lowers the cost by < 1e-6 relative (Ceres' own default; COLMAP
+    # sets 0, so every round ran its 100 iterations long after the cameras stopped moving)
+    bo.ceres.solver_options.function_tolerance = 1e-6
     removed = 0
     for _ in range(iterations):
         pycolmap.bundle_adjustment(rec, bo)
@@ -233,14 +253,21 @@ def _run_colmap(root: Path, work: Path, images, sizes, opts: PosesOptions):
         _extract(db, root, group, opts, single_camera=True)
     matcher = opts.matcher
     if matcher == "auto":
-        matcher = "exhaustive" if len(names) <= opts.exhaustive_max_images else "sequential"
+        matcher = "exhaustive" if len(names) <= opts.exhaustive_limit() else "retrieval"
+    sets = [g for g in ([n for n, s in images if s == st] for st in SETS) if g]
     if matcher == "exhaustive":
         pairs = None
         log.info("matching: exhaustive (%d pairs)", len(names) * (len(names) - 1) // 2)
+    elif matcher == "retrieval":
+        vectors = dict(zip(names, word_histograms(_read_descriptors(db, names),
+                                                  seed=opts.seed)))
+        pairs = retrieval_pairs(sets, vectors, opts.retrieval_neighbours,
+                                opts.sequential_overlap)
+        log.info("matching: retrieval (%d pairs: the %d most similar images by visual words + "
+                 "%d capture-order neighbours per image)", len(pairs),
+                 opts.retrieval_neighbours, opts.sequential_overlap)
     else:
-        groups = [[n for n, s in images if s == st] for st in SETS]
-        pairs = sequential_pairs([g for g in groups if g], opts.sequential_overlap,
-                                 opts.sequential_links)
+        pairs = sequential_pairs(sets, opts.sequential_overlap, opts.sequential_links)
         log.info("matching: sequential (%d pairs: %d capture-order neighbours + %d links per "
                  "image and set)", len(pairs), opts.sequential_overlap, opts.sequential_links)
     _match(db, work, opts, pairs, scale)

@@ -155,7 +155,7 @@ def _run_known(root: Path, work: Path, images, sizes, known, opts: PosesOptions)
     db = work / "database.db"
     pycolmap.set_random_seed(opts.seed)
     _extract(db, root, names, opts, single_camera=single, camera_params=params)
-    if len(names) <= opts.exhaustive_max_images:
+    if len(names) <= opts.exhaustive_limit():
         pairs, matcher = None, "exhaustive"
     else:
         pairs, matcher = proximity_pairs(cams, opts.sequential_overlap +

@@ -5,6 +5,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 
+MATCHERS = ("auto", "exhaustive", "retrieval", "sequential")
 CAMERA_MODELS = ("PINHOLE", "SIMPLE_PINHOLE", "SIMPLE_RADIAL", "RADIAL", "OPENCV")
 
 
@@ -15,11 +16,20 @@ class PosesOptions:
     Attributes:
         source: ``auto`` (known poses if the scene has cameras.json / transforms.json, else
             COLMAP), ``colmap`` or ``known``.
-        matcher: ``auto`` (exhaustive up to ``exhaustive_max_images`` images, else
-            ``sequential``), ``exhaustive`` or ``sequential`` (capture-order neighbours within
-            each set + evenly spaced links between all images; no vocabulary tree needed).
-        exhaustive_max_images: image count up to which ``auto`` matches all pairs.
-        sequential_overlap: capture-order neighbours matched on each side (``sequential``).
+        matcher: ``auto`` (``exhaustive`` up to ``exhaustive_max_images`` images, else
+            ``retrieval``), ``exhaustive`` (all pairs: cost grows with the square of the image
+            count), ``retrieval`` (each image with its ``retrieval_neighbours`` most similar
+            images by a bag of visual words learnt from the scene's own features, plus its
+            ``sequential_overlap`` capture-order neighbours; no pre-trained vocabulary) or
+            ``sequential`` (capture-order neighbours within each set + evenly spaced links
+            between all images).
+        exhaustive_max_images: image count up to which ``auto`` matches all pairs; None =
+            while all pairs are no more than retrieval would match
+            (``2 * (retrieval_neighbours + sequential_overlap) + 1`` images). With known
+            poses, larger sets are matched by camera proximity instead.
+        retrieval_neighbours: most similar images each image is matched with (``retrieval``).
+        sequential_overlap: capture-order neighbours matched on each side (``sequential``,
+            ``retrieval``).
         sequential_links: evenly spaced images of every set each image is also matched with.
         camera_model: COLMAP camera model: ``PINHOLE`` (fx, fy, cx, cy), ``SIMPLE_PINHOLE``
             (one focal length), or a model with lens distortion estimated by COLMAP:
@@ -73,7 +83,8 @@ class PosesOptions:
 
     source: str = "auto"
     matcher: str = "auto"
-    exhaustive_max_images: int = 150
+    exhaustive_max_images: int | None = None
+    retrieval_neighbours: int = 20
     sequential_overlap: int = 8
     sequential_links: int = 6
     camera_model: str = "PINHOLE"
@@ -96,9 +107,11 @@ class PosesOptions:
     def __post_init__(self):
         if self.source not in ("auto", "colmap", "known"):
             raise ValueError(f"source must be auto, colmap or known, not {self.source!r}")
-        if self.matcher not in ("auto", "exhaustive", "sequential"):
-            raise ValueError(f"matcher must be auto, exhaustive or sequential, not "
+        if self.matcher not in MATCHERS:
+            raise ValueError(f"matcher must be one of {', '.join(MATCHERS)}, not "
                              f"{self.matcher!r}")
+        if self.retrieval_neighbours < 1:
+            raise ValueError("retrieval_neighbours must be >= 1")
         if self.camera_model not in CAMERA_MODELS:
             raise ValueError(f"camera_model must be one of {', '.join(CAMERA_MODELS)}, not "
                              f"{self.camera_model!r}")
@@ -115,3 +128,9 @@ class PosesOptions:
             raise ValueError("resample_max_side must be >= 0 (pixels; 0 = no cap)")
         if self.refine_iterations < 0 or self.mapper_attempts < 1:
             raise ValueError("refine_iterations must be >= 0 and mapper_attempts >= 1")
+
+    def exhaustive_limit(self) -> int:
+        """Image count up to which ``matcher: auto`` matches all pairs."""
+        if self.exhaustive_max_images is not None:
+            return self.exhaustive_max_images
+        return 2 * (self.retrieval_neighbours + self.sequential_overlap) + 1

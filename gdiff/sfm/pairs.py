@@ -62,3 +62,88 @@ def proximity_pairs(cameras: list[Camera], k: int) -> list[tuple[str, str]]:
                 a, b = c.image, cameras[j].image
                 pairs.add((a, b) if a < b else (b, a))
     return sorted(pairs)
+
+
+def _unit_rows(x: np.ndarray) -> np.ndarray:
+    x = np.asarray(x, dtype=np.float32)
+    return x / np.maximum(np.linalg.norm(x, axis=1, keepdims=True), 1e-12)
+
+
+def _nearest_word(desc: np.ndarray, words: np.ndarray, chunk: int = 65536) -> np.ndarray:
+    """Index of the nearest row of ``words`` (W, D) for each row of ``desc`` (M, D), both
+    unit rows: the largest dot product, computed in chunks by matrix products."""
+    out = np.empty(len(desc), dtype=np.int64)
+    for s in range(0, len(desc), chunk):
+        out[s:s + chunk] = np.argmax(desc[s:s + chunk] @ words.T, axis=1)
+    return out
+
+
+def word_histograms(descriptors: list[np.ndarray], num_words: int = 256,
+                    max_train: int = 50_000, seed: int = 0) -> np.ndarray:
+    """Bag-of-visual-words image vectors from the images' own local features.
+
+    A vocabulary of ``num_words`` words is learnt by k-means (OpenCV, k-means++ seeding) on at
+    most ``max_train``
+    descriptors sampled from all images; each image is then the tf-idf weighted, L2-normalised
+    histogram of its descriptors' nearest words. No pre-trained vocabulary is needed.
+
+    Args:
+        descriptors: per image, its feature descriptors (M_i, D) (e.g. SIFT, uint8 or float).
+        num_words: vocabulary size (capped by the number of descriptors).
+        max_train: descriptors used to learn the vocabulary.
+        seed: random seed of the sampling and of k-means.
+
+    Returns:
+        (N, W) float32 image vectors with unit norm (zero rows for images without features);
+        their dot products are the images' similarities in [0, 1].
+    """
+    import cv2
+
+    rng = np.random.default_rng(seed)
+    descs = [_unit_rows(d) if len(d) else np.zeros((0, 1), np.float32) for d in descriptors]
+    nonempty = [d for d in descs if len(d)]
+    if not nonempty:
+        return np.zeros((len(descs), 1), np.float32)
+    every = np.concatenate(nonempty)
+    train = every[rng.choice(len(every), size=min(max_train, len(every)), replace=False)]
+    w = max(1, min(num_words, len(train)))
+    cv2.setRNGSeed(seed)
+    criteria = (cv2.TERM_CRITERIA_MAX_ITER + cv2.TERM_CRITERIA_EPS, 10, 1e-4)
+    _, _, words = cv2.kmeans(np.ascontiguousarray(train), w, None, criteria, 1,
+                             cv2.KMEANS_PP_CENTERS)
+    words = _unit_rows(words)
+    counts = np.zeros((len(descs), w), np.float32)
+    for i, d in enumerate(descs):
+        if len(d):
+            counts[i] = np.bincount(_nearest_word(d, words), minlength=w)
+    df = np.count_nonzero(counts, axis=0)
+    idf = np.log((len(descs) + 1.0) / (df + 1.0)).astype(np.float32)
+    tf = counts / np.maximum(counts.sum(axis=1, keepdims=True), 1.0)
+    return _unit_rows(tf * idf)
+
+
+def retrieval_pairs(groups: list[list[str]], vectors: dict[str, np.ndarray], neighbours: int,
+                    overlap: int) -> list[tuple[str, str]]:
+    """Image pairs for large, possibly unordered sets: each image with its ``neighbours``
+    most similar images (by ``vectors``, e.g. :func:`word_histograms`) of any set, plus its
+    next ``overlap`` images in capture order within its set (photo series and video frames
+    overlap their neighbours; unordered sets lose nothing but a few pairs).
+
+    Returns:
+        Unordered, de-duplicated pairs ``(a, b)`` with ``a < b``; at most
+        ``N * (neighbours + overlap)`` of them for N images, so matching grows linearly.
+    """
+    names = [n for g in groups for n in g]
+    pairs = set(sequential_pairs(groups, overlap, 0)) if overlap > 0 else set()
+    if len(names) < 2 or neighbours <= 0:
+        return sorted(pairs)
+    v = np.stack([vectors[n] for n in names])
+    sim = v @ v.T
+    np.fill_diagonal(sim, -np.inf)
+    k = min(neighbours, len(names) - 1)
+    top = np.argpartition(-sim, k - 1, axis=1)[:, :k]
+    for i, row in enumerate(top):
+        for j in row:
+            a, b = names[i], names[j]
+            pairs.add((a, b) if a < b else (b, a))
+    return sorted(pairs)

@@ -58,13 +58,18 @@ class InterpolateOptions:
     """Options of the interpolate stage (config section ``interpolate``).
 
     Attributes:
-        n: poses inserted between consecutive key poses (the paper's n). When ``max_angle_deg``
-            or ``max_step`` is set, the minimum per gap.
+        n: poses inserted at least between consecutive key poses (the paper's fixed n when
+            ``max_angle_deg`` and ``max_step`` are null).
         max_angle_deg: if set, each gap gets enough poses that consecutive frames differ by at
             most this rotation angle (degrees).
         max_step: if set, each gap gets enough poses that consecutive camera centres are at most
             this far apart, as a fraction of the scene radius (median distance of the key
             camera centres from their centroid).
+
+    By default the frames are spaced by what the tracker needs (small steps between
+    consecutive frames), not by the photo count: photos taken closer together get fewer
+    poses between them, so render, segment and compare cost follows the length of the path
+    rather than the number of photos.
         reorder: ``auto`` (reorder a set into a short path when its capture order has a jump),
             ``always`` or ``never``.
         jump_factor: ``auto`` calls a capture order jumpy when its largest step costs more than
@@ -73,9 +78,9 @@ class InterpolateOptions:
             (scene radii) in the step cost used for ordering.
     """
 
-    n: int = 4
-    max_angle_deg: float | None = None
-    max_step: float | None = None
+    n: int = 0
+    max_angle_deg: float | None = 1.5
+    max_step: float | None = 0.05
     reorder: str = "auto"
     jump_factor: float = 3.0
     rotation_weight: float = 1.0

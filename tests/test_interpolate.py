@@ -123,7 +123,7 @@ def test_build_sequence_counts_and_separate_paths(tmp_path, n):
     ev = _orbit(2, "eval_before", phase=50)
     save_cameras(tmp_path / "cameras.json", before + ev + after)
     summary = build_sequence(tmp_path / "cameras.json", tmp_path / "seq" / "poses.json",
-                             InterpolateOptions(n=n))
+                             InterpolateOptions(n=n, max_angle_deg=None, max_step=None))
     assert summary["p1"]["frames"] == 7 + 6 * n and summary["p2"]["frames"] == 5 + 4 * n
     data = json.loads((tmp_path / "seq" / "poses.json").read_text())
     assert data["paths"]["p1"]["set"] == "before" and data["paths"]["p2"]["set"] == "after"
@@ -155,7 +155,7 @@ def test_max_angle_picks_frames_per_gap(tmp_path):
     after = _orbit(3, "after", span=(0, 10))  # ~5 deg per gap
     save_cameras(tmp_path / "cameras.json", before + after)
     build_sequence(tmp_path / "cameras.json", tmp_path / "poses.json",
-                   InterpolateOptions(n=1, max_angle_deg=4.0))
+                   InterpolateOptions(n=1, max_angle_deg=4.0, max_step=None))
     seq = load_sequence(tmp_path / "poses.json")
     for frames in seq.values():
         for a, b in zip(frames[:-1], frames[1:]):
@@ -166,6 +166,22 @@ def test_max_angle_picks_frames_per_gap(tmp_path):
     assert len(seq["p1"]) > 4 + 3 * 1 and len(seq["p2"]) == 3 + 2 * 1
 
 
+def test_default_frames_follow_the_path_not_the_photo_count(tmp_path):
+    frames = {}
+    for n in (10, 20, 40):  # the same 90 deg arc photographed 4x more densely
+        save_cameras(tmp_path / f"c{n}.json", _orbit(n, "before", span=(0, 90))
+                     + _orbit(n, "after", span=(0, 90), radius=2.4))
+        s = build_sequence(tmp_path / f"c{n}.json", tmp_path / f"p{n}.json")
+        frames[n] = s["p1"]["frames"]
+        seq = load_sequence(tmp_path / f"p{n}.json")
+        for a, b in zip(seq["p1"][:-1], seq["p1"][1:]):  # steps the tracker can follow
+            ang = np.degrees((Rotation.from_matrix(a.c2w[:3, :3]).inv()
+                              * Rotation.from_matrix(b.c2w[:3, :3])).magnitude())
+            assert ang <= InterpolateOptions().max_angle_deg + 1e-6
+    assert frames[10] > 10 + 9 * 4  # sparse photos: gaps filled
+    assert frames[40] < 1.4 * frames[10]  # 4x the photos, about the same frames
+
+
 def test_reordering_fixes_shuffled_orbit(tmp_path, caplog):
     before = _orbit(12, "before", span=(0, 150))
     after = _orbit(6, "after", span=(10, 100), radius=2.4)
@@ -174,7 +190,7 @@ def test_reordering_fixes_shuffled_orbit(tmp_path, caplog):
     save_cameras(tmp_path / "cameras.json", shuffled + after)
     with caplog.at_level(logging.INFO, logger="gdiff.interpolate"):
         summary = build_sequence(tmp_path / "cameras.json", tmp_path / "poses.json",
-                                 InterpolateOptions(n=2))
+                                 InterpolateOptions(n=2, max_angle_deg=None, max_step=None))
     assert summary["p1"]["reordered"] and not summary["p2"]["reordered"]
     data = json.loads((tmp_path / "poses.json").read_text())
     order = data["paths"]["p1"]["order"]
@@ -183,7 +199,8 @@ def test_reordering_fixes_shuffled_orbit(tmp_path, caplog):
     assert "largest step" in caplog.text and "has a jump" in caplog.text
     # with reordering off the capture order is kept
     build_sequence(tmp_path / "cameras.json", tmp_path / "p_never.json",
-                   InterpolateOptions(n=2, reorder="never"))
+                   InterpolateOptions(n=2, reorder="never", max_angle_deg=None,
+                                      max_step=None))
     kept = json.loads((tmp_path / "p_never.json").read_text())["paths"]["p1"]["order"]
     assert kept == [c.image for c in shuffled]
 

@@ -69,7 +69,7 @@ def rendered(synth_tiny_scene, synth_tiny_dir, tmp_path_factory):
     before = synth_tiny_scene.cameras("before")[::2]
     after = synth_tiny_scene.cameras("after")[::2]
     save_cameras(tmp / "cameras.json", before + after)
-    build_sequence(tmp / "cameras.json", tmp / "poses.json", InterpolateOptions(n=1))
+    build_sequence(tmp / "cameras.json", tmp / "poses.json", InterpolateOptions(n=1, max_angle_deg=None, max_step=None))
     _gt_model(synth_tiny_scene, before, tmp / "model.pt")
     summary = render_sequences(tmp / "model.pt", tmp / "poses.json", tmp / "render",
                                RenderOptions(batch=4, sheet_max_frames=6, previews=True),

@@ -23,10 +23,12 @@ class PosesOptions:
             ``sequential_overlap`` capture-order neighbours; no pre-trained vocabulary) or
             ``sequential`` (capture-order neighbours within each set + evenly spaced links
             between all images).
-        exhaustive_max_images: image count up to which ``auto`` matches all pairs; None =
-            while all pairs are no more than retrieval would match
-            (``2 * (retrieval_neighbours + sequential_overlap) + 1`` images). With known
-            poses, larger sets are matched by camera proximity instead.
+        exhaustive_max_images: image count up to which ``auto`` matches all pairs (beyond it
+            the pair count grows linearly); None = while all pairs are no more than retrieval
+            would match (``2 * (retrieval_neighbours + sequential_overlap) + 1`` images). All
+            pairs give the most accurate poses: retrieval finds similar views, which are not
+            the wide-baseline pairs that pin the geometry down. With known poses, larger sets
+            are matched by camera proximity instead.
         retrieval_neighbours: most similar images each image is matched with (``retrieval``).
         sequential_overlap: capture-order neighbours matched on each side (``sequential``,
             ``retrieval``).
@@ -83,7 +85,7 @@ class PosesOptions:
 
     source: str = "auto"
     matcher: str = "auto"
-    exhaustive_max_images: int | None = None
+    exhaustive_max_images: int | None = 100
     retrieval_neighbours: int = 20
     sequential_overlap: int = 8
     sequential_links: int = 6

@@ -2,7 +2,7 @@
 baseline (absolute colour difference + Otsu, ``gdiff.baselines.pixel_diff``).
 
 For each preset/seed: ground-truth renders (colour, depth) along the before and after orbits
-(paths p1, p2) in both states, segment + track + compare (``gdiff.segtrack``), and per-frame
+(paths p1, p2) in both states, segment + track + compare (``gdiff.segment``, ``gdiff.compare``), and per-frame
 F1/IoU of the union change map against the ground-truth union (changed objects visible at t0 or
 t1); also of mask_t0/mask_t1 against the per-time ground truth. Prints a table and writes
 ``--out`` (CSV, one row per frame and method).
@@ -30,10 +30,9 @@ import pandas as pd
 
 from gdiff import synth
 from gdiff.baselines import pixel_diff
-from gdiff.change import CompareOptions
+from gdiff.compare import CompareOptions, compare_paths
 from gdiff.metrics import pixel_scores
-from gdiff.segment import SegmentOptions, make_segmenter
-from gdiff.segtrack import compare_paths, track_paths
+from gdiff.segment import SegmentOptions, make_segmenter, track_paths
 from gdiff.track import TrackOptions
 
 _GT_KEYS = ("rgb", "depth", "ids", "changed")
@@ -125,7 +124,7 @@ def type_accuracy(scene, ids, gt, df):
 
 def evaluate_pairs(scene_dir) -> pd.DataFrame:
     """Per eval pair of a scene folder: P/R/F1/IoU of ID-compare (no depth) and pixel diff."""
-    from gdiff.change import detect_changes_pair
+    from gdiff.compare import detect_changes_pair
     from gdiff.io import read_image, read_mask
 
     d = Path(scene_dir) / "eval"

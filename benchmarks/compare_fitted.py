@@ -9,8 +9,8 @@ synth preset + seed that built it.
 2. Every path pose is mapped into the synth frame and rendered by the synth scene in both
    states (pixel-centre ground truth: ``changed`` = a changed object is visible); the truth per
    pose is ``gt_t0`` (state before), ``gt_t1`` (after) and their union.
-3. ``segment`` + ``compare`` run as the workflow runs them (:func:`gdiff.segtrack.
-   segment_and_track`, :func:`gdiff.segtrack.compare`) on the results folder's renders, writing
+3. ``segment`` + ``compare`` run as the workflow runs them (:func:`gdiff.segment.
+   segment_and_track`, :func:`gdiff.compare.compare`) on the results folder's renders, writing
    to ``--out`` (``--reuse-ids`` keeps ``--out/instances`` from an earlier run and only
    compares again).
 4. Scores per frame: F1/IoU of the union mask against the union truth (mean over frames with
@@ -36,11 +36,11 @@ import pandas as pd
 from gdiff import synth
 from gdiff.align import umeyama_sim3
 from gdiff.cameras import Camera
-from gdiff.change import CompareOptions
+from gdiff.compare import CompareOptions, compare
+from gdiff.frames import key_frames, read_sequence
 from gdiff.io import read_json, read_mask
 from gdiff.metrics import pixel_scores, scores_from_counts
-from gdiff.segment import SegmentOptions
-from gdiff.segtrack import _poses, compare, key_frames, segment_and_track
+from gdiff.segment import SegmentOptions, segment_and_track
 from gdiff.sfm import read_cameras_file
 from gdiff.track import TrackOptions
 
@@ -188,7 +188,7 @@ def main(argv=None):
     res, out = Path(a.results), Path(a.out)
     out.mkdir(parents=True, exist_ok=True)
     poses_json = res / "sequence" / "poses.json"
-    cams, meta = _poses(poses_json)
+    cams, meta = read_sequence(poses_json)
     keys = key_frames(meta)
     scene = synth.build_scene(a.preset, a.seed)
     align = align_to_gt(read_cameras_file(res / "poses" / "cameras.json"),

@@ -3,7 +3,7 @@
 Renders ``--poses`` ground-truth frames of a built-in synthetic scene (before orbit, both
 times, at ``--size``), stores each frame with each codec through :func:`gdiff.exr.write_frame`
 and reads it back (:func:`gdiff.exr.read_frame`), then runs segmentation, tracking and the ID
-comparison (:func:`gdiff.segtrack.track_paths`, :func:`gdiff.segtrack.compare_paths`, config
+comparison (:func:`gdiff.segment.track_paths`, :func:`gdiff.compare.compare_paths`, config
 defaults) on the read-back frames. Prints per codec: bytes per frame, colour error, changed
 IDs, and the Dice of the union change masks with the ground-truth changed pixels and with the
 masks of the unstored (float32) frames.
@@ -44,12 +44,12 @@ def main(argv=None) -> int:
     import yaml
 
     from gdiff import synth
-    from gdiff.change import CompareOptions
+    from gdiff.compare import CompareOptions
     from gdiff.device import set_threads
     from gdiff.exr import read_frame, write_frame
     from gdiff.options import from_config
-    from gdiff.segment import SegmentOptions, make_segmenter
-    from gdiff.segtrack import compare_paths, track_paths
+    from gdiff.compare import compare_paths
+    from gdiff.segment import SegmentOptions, make_segmenter, track_paths
     from gdiff.track import TrackOptions
 
     set_threads(args.threads)

@@ -11,7 +11,7 @@ in neither training set) against ``eval/masks``:
    * ``oracle`` (synthetic scenes only): the exact changed-object masks at every training pose
      from ``gdiff.synth`` - isolates the partition stage from segmentation errors; or
    * ``pair``: the fitted model rendered at every training pose at t=0 and t=1 (colour +
-     depth) and compared by ``gdiff.change.detect_changes_pair`` (segment, carry IDs, compare)
+     depth) and compared by ``gdiff.compare.detect_changes_pair`` (segment, carry IDs, compare)
      - the compare stage without the interpolated sequences;
 4. partition: ``gdiff.partition.train_partition``;
 5. scoring: ``render_change_map(pm, eval camera, t=None)`` (union of t=0 and t=1) vs the GT
@@ -99,7 +99,7 @@ def oracle_targets(preset: str, cams, res: Path) -> None:
 
 def pair_targets(model_path: Path, cams, res: Path) -> None:
     """Render the fit at each training pose at t=0/1 and compare the pair (ID compare)."""
-    from gdiff.change import detect_changes_pair
+    from gdiff.compare import detect_changes_pair
     from gdiff.splat.model import load_model
     from gdiff.splat.render import render
 

@@ -118,11 +118,11 @@ def segment_compare(render_dirs: dict[str, Path], poses_json: Path, work: Path) 
     """Run segment + compare on each codec's frames; compare the change masks with the first."""
     import yaml
 
-    from gdiff.change import CompareOptions
+    from gdiff.compare import CompareOptions
     from gdiff.io import read_mask
     from gdiff.options import from_config
-    from gdiff.segment import SegmentOptions
-    from gdiff.segtrack import compare, segment_and_track
+    from gdiff.compare import compare
+    from gdiff.segment import SegmentOptions, segment_and_track
     from gdiff.track import TrackOptions
 
     cfg = yaml.safe_load((Path(__file__).resolve().parents[1] / "config/config.yaml").read_text())

@@ -6,7 +6,7 @@ taking an :class:`gdiff.evaluate.EvalView` (eval before/after images, eval camer
 * :func:`pixel_diff_method` — C-NeRF-style appearance difference: per-pixel absolute colour
   difference of the before and after images, Gaussian blur, Otsu threshold (OpenCV).
 * :func:`idcompare_method` — instance-ID comparison of the eval pair itself (segment + track
-  the two images, compare IDs) without the Gaussian partition: ``gdiff.change``.
+  the two images, compare IDs) without the Gaussian partition: ``gdiff.compare``.
 * :func:`partition_method` — the learned change map rendered by the partition model at the
   eval camera: ``gdiff.partition``.
 
@@ -147,7 +147,7 @@ def idcompare_method(detect: Callable | None = None, render: Renderer | None = N
     """Instance-ID comparison of the eval pair, without the partition model.
 
     Calls ``detect(rgb0, rgb1, depth0=..., depth1=..., **kwargs) -> (mask_t0, mask_t1)``
-    (default: ``gdiff.change.detect_changes_pair``, imported on first use, which also gets the
+    (default: ``gdiff.compare.detect_changes_pair``, imported on first use, which also gets the
     eval camera's ``K`` when known; pass ``segment_options=``, ``track_options=``,
     ``options=`` through ``kwargs``) and returns the union of the two masks (the GT marks
     changed objects visible before *or* after).
@@ -165,7 +165,7 @@ def idcompare_method(detect: Callable | None = None, render: Renderer | None = N
         if view.camera is not None:
             cam = view.camera_at_gt_size()
         if fn is None:
-            from .change import detect_changes_pair  # lazy: stage module
+            from .compare import detect_changes_pair  # lazy: stage module
 
             fn = detect_changes_pair
         rgb0, rgb1 = _pair(view, render)

@@ -371,7 +371,7 @@ def build_methods(options: EvalOptions, pmodel: Any = None, render: Callable | N
     ``pmodel``: the trained partition model (needed for ``partition``); ``render(camera, t)``:
     optional renderer standing in for missing eval images; ``depth(camera, t)``: optional depth
     renderer giving ``idcompare`` the model's depth (``options.idcompare_depth``); ``detect``: override of
-    ``gdiff.change.detect_changes_pair`` for ``idcompare``; ``idcompare_kwargs`` (e.g.
+    ``gdiff.compare.detect_changes_pair`` for ``idcompare``; ``idcompare_kwargs`` (e.g.
     ``segment_options=``) are passed on to it.
     """
     out: dict[str, Callable] = {}

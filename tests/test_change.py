@@ -9,10 +9,10 @@ import pandas as pd
 import pytest
 
 from gdiff import synth
-from gdiff.change import CompareOptions, change_masks, decide, detect_changes_pair, pose_stats
+from gdiff.compare import (CompareOptions, change_masks, compare, compare_paths, decide,
+                           detect_changes_pair, pose_stats)
 from gdiff.io import read_ids, read_image, read_mask, srgb_to_linear
-from gdiff.segment import SegmentOptions, make_segmenter
-from gdiff.segtrack import compare, compare_paths, segment_and_track, track_paths
+from gdiff.segment import SegmentOptions, make_segmenter, segment_and_track, track_paths
 from gdiff.track import TrackOptions, world_points
 
 H, W = 40, 60
@@ -311,7 +311,7 @@ def _plane_camera(x: float, f: float = 30.0):
 
 
 def test_view_count_respects_frustum_and_occlusion():
-    from gdiff.coverage import DepthView, observed, view_count
+    from gdiff.compare.coverage import DepthView, observed, view_count
 
     cam = _plane_camera(0.0)
     z = np.full((H, W), 5.0, np.float32)
@@ -342,7 +342,7 @@ def test_view_count_respects_frustum_and_occlusion():
 def test_nearest_views_bound_the_work_but_not_the_result():
     """``max_views``: the views that share most of the frame decide first, the pixels they
     leave unobserved are tested against all views; the mask is the one of all views."""
-    from gdiff.coverage import DepthView, nearest_views, observed
+    from gdiff.compare.coverage import DepthView, nearest_views, observed
 
     cam = _plane_camera(0.0)
     plane = np.full((H, W), 5.0, np.float32)
@@ -376,7 +376,7 @@ def test_nearest_views_bound_the_work_but_not_the_result():
 def test_spread_views_are_picked_for_parallax():
     """``spread``: among views that share most of the frame, the picked ones span the widest
     directions (the plain ranking takes the best-covering, here the closest together)."""
-    from gdiff.coverage import DepthView, nearest_views
+    from gdiff.compare.coverage import DepthView, nearest_views
 
     cam = _plane_camera(0.0)
     plane = np.full((H, W), 5.0, np.float32)
@@ -611,7 +611,7 @@ def test_floor_resegmented_by_moved_glare_is_not_a_change():
 def test_pose_stats_per_id_summaries_match_the_whole_image():
     """IDs are measured in their bounding boxes: areas, sizes, positions and histograms are
     those of the whole-image masks."""
-    from gdiff.change import _chroma_hist, _normalised_chroma
+    from gdiff.compare.change import _chroma_hist, _normalised_chroma
     from gdiff.track import world_points
 
     rng = np.random.default_rng(7)

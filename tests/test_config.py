@@ -19,7 +19,7 @@ SECTIONS = {
     "render": ("gdiff.sequence", "RenderOptions"),
     "segment": ("gdiff.segment", "SegmentOptions"),
     "track": ("gdiff.track", "TrackOptions"),
-    "compare": ("gdiff.change", "CompareOptions"),
+    "compare": ("gdiff.compare", "CompareOptions"),
     "partition": ("gdiff.partition", "PartitionOptions"),
     "evaluate": ("gdiff.evaluate", "EvalOptions"),
 }

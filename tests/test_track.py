@@ -9,8 +9,7 @@ import pytest
 
 from gdiff import synth
 from gdiff.cameras import Camera
-from gdiff.segment import SegmentOptions, make_segmenter
-from gdiff.segtrack import track_paths
+from gdiff.segment import SegmentOptions, make_segmenter, track_paths
 from gdiff.track import (TrackFrame, TrackOptions, chain_order, merge_by_position, reproject_ids,
                          track_sequence)
 

@@ -2,9 +2,8 @@
 import _bootstrap  # noqa: F401  (gdiff from this checkout)
 from pathlib import Path
 
-from gdiff.change import CompareOptions
+from gdiff.compare import CompareOptions, compare
 from gdiff.options import from_config
-from gdiff.segtrack import compare
 from gdiff.stage import run_stage
 
 run_stage(snakemake, lambda: compare(

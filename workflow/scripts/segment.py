@@ -4,8 +4,7 @@ from dataclasses import replace
 from pathlib import Path
 
 from gdiff.options import from_config
-from gdiff.segment import SegmentOptions
-from gdiff.segtrack import segment_and_track
+from gdiff.segment import SegmentOptions, segment_and_track
 from gdiff.stage import run_stage
 from gdiff.track import TrackOptions
 

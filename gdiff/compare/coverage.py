@@ -21,8 +21,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .cameras import Camera
-from .track import world_points
+from ..cameras import Camera
+from ..track import world_points
 
 
 @dataclass

@@ -14,7 +14,7 @@ For every pose of a path the ID maps at t=0 and t=1 (one shared ID space, see
   highlight moved, and confirms a replaced object whose depth barely changed;
 * renders of a fitted 4D model differ between the two times also where nothing changed, so
   the evidence must be real: (a) with the training cameras (key views) only pixels whose
-  surface several photos of *each* time saw are compared (:mod:`gdiff.coverage`; elsewhere
+  surface several photos of *each* time saw are compared (:mod:`gdiff.compare.coverage`; elsewhere
   the model is unconstrained at one time) and an ID mostly outside them is not judged at that
   pose; (b) changed depth counts only in blobs wider than thin noise streaks
   (``evidence_open``); (c) a texture difference confirms only when the colours differ too,
@@ -45,13 +45,13 @@ import numpy as np
 import pandas as pd
 from scipy.optimize import linear_sum_assignment
 
-from .appearance import region_similarity, texture as image_texture
-from .errors import ConfigError
-from .io import srgb_to_linear
-from .track import (TrackFrame, TrackOptions, labels_from_instances, link_groups,
+from ..appearance import region_similarity, texture as image_texture
+from ..errors import ConfigError
+from ..io import srgb_to_linear
+from ..track import (TrackFrame, TrackOptions, labels_from_instances, link_groups,
                     track_sequence, world_points)
 
-log = logging.getLogger("gdiff.change")
+log = logging.getLogger("gdiff.compare")
 
 CHANGE_TYPES = ("added", "removed", "moved")
 
@@ -84,7 +84,7 @@ class CompareOptions:
     texture_color_similarity: a candidate confirmed by texture alone must also differ in
         colour: the Bhattacharyya coefficient of the chromaticity histograms of its region at
         the two times below this (1 disables this requirement).
-    min_observed: with key views (training cameras, see :mod:`gdiff.coverage`) an ID is judged
+    min_observed: with key views (training cameras, see :mod:`gdiff.compare.coverage`) an ID is judged
         at a pose only when at least this fraction of its mask there is observed at both times;
         the evidence is measured on observed pixels only.
     observed_depth_tol: relative depth agreement for a key view to see a surface point.
@@ -93,7 +93,7 @@ class CompareOptions:
         apart (seen from one direction only, a surface's depth is not determined: a fitted
         model may put it anywhere along the rays).
     observed_max_views: per frame only the key views of each time that see most of its
-        surface are used, at most this many (:func:`gdiff.coverage.nearest_views`; keeps the
+        surface are used, at most this many (:func:`gdiff.compare.coverage.nearest_views`; keeps the
         cost per frame independent of the number of photos). 0 uses every key view.
     """
 
@@ -245,7 +245,7 @@ def pose_stats(ids0: np.ndarray, ids1: np.ndarray, o: CompareOptions,
 
     Depth evidence counts changed-depth pixels inside coherent blobs only
     (:func:`coherent`, ``evidence_open``). ``observed0`` / ``observed1`` (bool [H, W], see
-    :mod:`gdiff.coverage`): pixels whose surface a photo of that time saw. An ID whose mask is
+    :mod:`gdiff.compare.coverage`): pixels whose surface a photo of that time saw. An ID whose mask is
     observed at both times for less than ``min_observed`` is not judged at this pose
     (``observed`` False: no candidate, left out of the vote); otherwise its evidence is measured
     on the pixels observed at both times.
@@ -667,8 +667,8 @@ def detect_changes_pair(rgb0: np.ndarray, rgb1: np.ndarray, depth0: np.ndarray |
     compares them and returns (mask_t0, mask_t1), bool [H, W]: changed instances visible at t0
     (removed / moved away) and at t1 (added / moved in). Their union is the change map.
     """
-    from .cameras import Camera
-    from .segment import SegmentOptions, make_segmenter
+    from ..cameras import Camera
+    from ..segment import SegmentOptions, make_segmenter
     o = options or CompareOptions()
     seg = make_segmenter(segment_options or SegmentOptions())
     H, W = rgb0.shape[:2]

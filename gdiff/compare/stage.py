@@ -1,0 +1,144 @@
+"""Stage ``compare``: change masks of every pose of the rendered paths from the tracked IDs.
+
+:func:`compare_paths` compares the IDs of every pose at t0 and t1 (per-pose evidence and the
+per-ID decision: :mod:`gdiff.compare.change`; which pixels the photos of each time saw:
+:mod:`gdiff.compare.coverage`) and returns the per-pose masks and the per-ID decisions;
+:func:`compare` is the stage on files.
+
+Files (results/<scene>/): reads ``instances/index.json`` (the ID maps and, through it, the
+rendered EXR frames) and ``sequence/poses.json`` (:mod:`gdiff.frames`); writes
+``change/<path>/<t0|t1|union>/NNNNN.png`` (255 = changed), ``change/changes.csv`` and, last,
+``change/keyframes.csv``.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+
+from ..errors import SceneError
+from ..frames import TIMES, Key, key_frames, read_frame, read_sequence
+from ..io import read_ids, read_json, write_csv, write_mask
+from ..log import progress
+from .change import CompareOptions, change_masks, decide, pose_stats
+from .coverage import DepthView, observed
+
+log = logging.getLogger("gdiff.compare")
+
+
+def key_views(frames, keys: dict[tuple[str, int], int] | None) -> dict[int, list[DepthView]]:
+    """Key views per time for :mod:`gdiff.compare.coverage`: ``keys[(path, i)] = time`` (0 or 1) names
+    the path frames that are training cameras of that time; each contributes its camera and
+    its depth rendered at that time (``frames``: dict or callable key -> frame dict). Frames
+    without depth or camera are skipped."""
+    get = frames if callable(frames) else (lambda k: (frames or {}).get(k, {}))
+    out: dict[int, list[DepthView]] = {0: [], 1: []}
+    for (p, i), time in sorted((keys or {}).items()):
+        f = get((p, TIMES[int(time)], i))
+        if f.get("depth") is not None and f.get("camera") is not None:
+            out[int(time)].append(DepthView(f["camera"], f["depth"]))
+    return out
+
+
+def compare_paths(ids: dict[Key, np.ndarray], frames: dict[Key, dict] | None,
+                  options: CompareOptions | None = None,
+                  keys: dict[tuple[str, int], int] | None = None
+                  ) -> tuple[dict[tuple[str, int], tuple[np.ndarray, np.ndarray]], pd.DataFrame]:
+    """Change masks per pose from the tracked ID maps.
+
+    ``ids[(path, t, i)]``: int [H, W]; ``frames`` (optional, same keys) gives ``rgb``/``depth``/
+    ``camera`` (and optional ``alpha``) for the evidence check (see :mod:`gdiff.compare.change`); it
+    may also be a callable key -> frame dict (to load lazily). ``keys`` (optional):
+    ``{(path, i): time}`` of the path frames that are training cameras (key frames) of that
+    time; with them only pixels a training photo of each time saw are compared
+    (:mod:`gdiff.compare.coverage`). Returns ({(path, i): (mask_t0, mask_t1)}, changes table: id,
+    changed, type, partner, n_t0, n_t1, n_confirmed, first, last, area, instance).
+    """
+    o = options or CompareOptions()
+    get = frames if callable(frames) else (lambda k: (frames or {}).get(k, {}))
+    poses = sorted({(p, i) for p, _, i in ids})
+    views = key_views(get, keys) if keys else None
+    stats = []
+    for p, i in progress(poses, desc="compare"):
+        f0, f1 = get((p, "t0", i)), get((p, "t1", i))
+        cam = f0.get("camera")
+        seen = [None, None]
+        if views is not None and cam is not None:
+            for time, f in enumerate((f0, f1)):
+                if f.get("depth") is not None and views[time]:
+                    seen[time] = observed(f["depth"], cam, views[time], o.observed_depth_tol,
+                                          o.observed_min_views, f.get("alpha"),
+                                          min_parallax=o.observed_min_parallax,
+                                          max_views=o.observed_max_views)
+        stats.append((f"{p}/{i:05d}", pose_stats(
+            ids[(p, "t0", i)], ids[(p, "t1", i)], o, f0.get("rgb"), f1.get("rgb"),
+            f0.get("depth"), f1.get("depth"), focal=cam.fx if cam is not None else None,
+            camera=cam, observed0=seen[0], observed1=seen[1])))
+    df = decide(stats, o)
+    changed = df.loc[df["changed"], "id"].tolist()
+    masks = {(p, i): change_masks(ids[(p, "t0", i)], ids[(p, "t1", i)], changed)
+             for p, i in poses}
+    log.info("compared %d poses: %d of %d IDs changed (%s)", len(poses), len(changed), len(df),
+             ", ".join(f"{t}: {(df['type'] == t).sum()}" for t in ("added", "removed", "moved")))
+    return masks, df
+
+
+def compare(instances_dir, poses_json, out_dir, options: CompareOptions | None = None) -> dict:
+    """Stage ``compare``: change masks of every pose from the tracked IDs.
+
+    Reads ``instances_dir/index.json`` (and through it the ID maps and the rendered EXR frames,
+    for the depth evidence) and the key frames of ``poses_json`` (the training cameras: only
+    pixels a photo of each time saw are compared, :mod:`gdiff.compare.coverage`); writes ``out_dir/<path>/<t0|t1|union>/NNNNN.png``,
+    ``out_dir/changes.csv`` (id, type, partner, first/last pose, area, instance: the object a
+    changed ID is a piece of, ...) and last
+    ``out_dir/keyframes.csv`` (path, frame, image, set, time, mask_t0, mask_t1, mask_union;
+    mask paths relative to the parent of ``out_dir``, i.e. results/<scene>/).
+    """
+    instances_dir, out_dir = Path(instances_dir), Path(out_dir)
+    index = read_json(instances_dir / "index.json")
+    cams, meta = read_sequence(poses_json)
+    ids, renders = {}, {}
+    for fr in index.get("frames", []):
+        key = (fr["path"], fr["t"], int(fr["frame"]))
+        ids[key] = read_ids(instances_dir / fr["ids"])
+        renders[key] = instances_dir / fr["render"]
+    if not ids:
+        raise SceneError(f"{instances_dir / 'index.json'}: no frames listed; re-run segment")
+
+    def read(key):
+        if key not in renders or not renders[key].exists():
+            return {}
+        rgb, alpha, depth = read_frame(renders[key])
+        return dict(rgb=rgb, alpha=alpha, depth=depth, camera=cams[key[0]][key[2]])
+
+    keys = key_frames(meta)
+    # key frames are read once: for the coverage views and again at their own pose
+    keyed = {(p, TIMES[t], i): read((p, TIMES[t], i)) for (p, i), t in keys.items()}
+
+    def load(key):
+        return keyed[key] if key in keyed else read(key)
+
+    masks, df = compare_paths(ids, load, options, keys=keys)
+    root = out_dir.parent
+    rows = []
+    for (p, i), (m0, m1) in sorted(masks.items()):
+        rel = {}
+        for name, m in (("t0", m0), ("t1", m1), ("union", m0 | m1)):
+            f = out_dir / p / name / f"{i:05d}.png"
+            write_mask(f, m)
+            rel[name] = os.path.relpath(f, root)
+        if (p, i) in keys:
+            fr = meta[p][i]
+            rows.append(dict(path=p, frame=i, image=fr.get("image", ""), set=fr.get("set") or "",
+                             time=keys[(p, i)], mask_t0=rel["t0"], mask_t1=rel["t1"],
+                             mask_union=rel["union"]))
+    write_csv(out_dir / "changes.csv", df[df["changed"]].drop(columns=["changed"]))
+    write_csv(out_dir / "keyframes.csv", pd.DataFrame(rows, columns=[
+        "path", "frame", "image", "set", "time", "mask_t0", "mask_t1", "mask_union"]))
+    counts = df.loc[df["changed"], "type"].value_counts().to_dict()
+    return {"poses": len(masks), "changed": int(df["changed"].sum()),
+            "instances": int(df.loc[df["changed"], "instance"].nunique()), **counts}

@@ -1,0 +1,167 @@
+"""Stage ``segment``: every rendered frame of the four sequences (p1/p2 x t0/t1) segmented
+and tracked in one ID space (chain order of :func:`gdiff.track.chain_order`).
+
+Files (results/<scene>/): reads ``render/<path>/<t>/NNNNN.exr`` and ``sequence/poses.json``
+(:mod:`gdiff.frames`); writes ``instances/<path>/<t>/NNNNN.png`` (uint16 IDs),
+``instances/tracks.csv`` and, last, ``instances/index.json`` (with ``segment.overlays`` also
+``instances/overlay/<path>/<t>/NNNNN.jpg``).
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import shutil
+from collections import OrderedDict
+from collections.abc import Sequence
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+
+from ..errors import SceneError
+from ..frames import TIMES, Key, read_frame, read_sequence, render_files
+from ..io import write_csv, write_ids, write_image, write_json
+from ..log import progress
+from ..track import TrackFrame, TrackOptions, chain_order, labels_from_instances, track_sequence
+from .base import Segmenter, SegmentOptions, make_segmenter
+
+log = logging.getLogger("gdiff.segment")
+
+
+class _Chain(Sequence):
+    """:class:`TrackFrame` s of the chain order, loaded and segmented on demand.
+
+    Each frame is segmented once, when first read (the tracker reads frames in chain order);
+    its labels are kept, the images only for the last ``keep`` frames read, so memory does not
+    grow with the number of frames. A frame read again after that (a same-pose partner far
+    back in the chain) is loaded again.
+    """
+
+    def __init__(self, order: list[Key], get, segmenter: Segmenter, keep: int):
+        self.order, self.get, self.segmenter, self.keep = order, get, segmenter, max(2, keep)
+        self.labels: dict[int, np.ndarray] = {}
+        self.cache: OrderedDict[int, TrackFrame] = OrderedDict()
+
+    def __len__(self):
+        return len(self.order)
+
+    def __getitem__(self, k: int) -> TrackFrame:
+        if not 0 <= k < len(self.order):
+            raise IndexError(k)
+        if k in self.cache:
+            self.cache.move_to_end(k)
+            return self.cache[k]
+        key = self.order[k]
+        f = self.get(key)
+        if not f:
+            raise SceneError(f"rendered frame {key} missing (every path needs the same frames "
+                             "at t0 and t1); re-run the render stage")
+        cam = f.get("camera")
+        if k not in self.labels:
+            self.labels[k] = segment_labels(self.segmenter, f["rgb"], f.get("depth"),
+                                            f.get("alpha"), cam.K if cam is not None else None)
+        tf = TrackFrame(labels=self.labels[k], rgb=f["rgb"], depth=f.get("depth"), camera=cam,
+                        pose_key=(key[0], key[2]), name=key, time=TIMES.index(key[1]))
+        self.cache[k] = tf
+        while len(self.cache) > self.keep:
+            self.cache.popitem(last=False)
+        return tf
+
+
+def segment_labels(segmenter: Segmenter, rgb: np.ndarray, depth=None, alpha=None,
+                   K=None) -> np.ndarray:
+    """Segment labels int32 [H, W] of one frame (0 = none; 1.. in the segmenter's order):
+    the segmenter's own ``label`` map when it has one (the same labels without building one
+    full-size mask per instance), else its instances painted in order."""
+    if hasattr(segmenter, "label"):
+        return np.asarray(segmenter.label(rgb, depth, alpha, K), np.int32)
+    return labels_from_instances(segmenter.segment(rgb, depth, alpha, K), rgb.shape[:2])
+
+
+def track_paths(frames, segmenter: Segmenter,
+                track_options: TrackOptions | None = None) -> tuple[dict[Key, np.ndarray], pd.DataFrame]:
+    """Segment and track all frames in one ID space.
+
+    ``frames[(path, t, i)]`` is a dict with ``rgb`` (float32 [H, W, 3] sRGB), optional
+    ``depth`` (float32 [H, W] z-depth), ``alpha`` (float32 [H, W]) and ``camera``
+    (:class:`Camera`). Every path must have the same frames at t0 and t1 (same poses).
+    ``frames`` may also be ``(keys, load)``: the frame keys and a callable key -> frame dict,
+    to read frames on demand (then only a few frames are held in memory at a time).
+    Returns (ID map int32 [H, W] per key, tracks table with id, first, last, n_frames,
+    mean_area; first/last as "path/t/NNNNN").
+    """
+    if isinstance(frames, tuple):
+        keys, get = frames
+    else:
+        keys, get = list(frames), (lambda k: frames.get(k, {}))
+    n_frames: dict[str, int] = {}
+    for p, t, i in keys:
+        n_frames[p] = max(n_frames.get(p, 0), i + 1)
+    paths = sorted(n_frames)
+    order = chain_order(n_frames, paths)
+    have = set(keys)
+    missing = [k for k in order if k not in have]
+    if missing:
+        raise SceneError(f"rendered frames missing for {missing[:3]} (every path needs the same "
+                         "frames at t0 and t1); re-run the render stage")
+    o = track_options or TrackOptions()
+    chain = _Chain(order, get, segmenter, keep=o.max_missed + 3)
+    res = track_sequence(chain, o)
+    ids = {key: m for key, m in zip(order, res.ids)}
+    tracks = res.tracks.copy()
+    fmt = lambda k: f"{order[k][0]}/{order[k][1]}/{order[k][2]:05d}"  # noqa: E731
+    tracks["first"] = [fmt(k) for k in tracks["first"]]
+    tracks["last"] = [fmt(k) for k in tracks["last"]]
+    return ids, tracks
+
+
+def _overlay(rgb: np.ndarray, ids: np.ndarray) -> np.ndarray:
+    """Colour overlay: each ID a fixed pseudo-random colour blended at 50 %, edges darkened."""
+    import cv2
+
+    rng = np.random.default_rng(12345)
+    pal = rng.uniform(0.2, 1.0, (int(ids.max()) + 1, 3)).astype(np.float32)
+    col = pal[ids]
+    out = np.where(ids[..., None] > 0, 0.5 * rgb + 0.5 * col, rgb)
+    edge = cv2.morphologyEx(ids.astype(np.float32), cv2.MORPH_GRADIENT, np.ones((3, 3))) > 0
+    out[edge] *= 0.3
+    return out
+
+
+def segment_and_track(render_dir, poses_json, out_dir, options: SegmentOptions | None = None,
+                      track_options: TrackOptions | None = None) -> dict:
+    """Stage ``segment``: ID maps of every rendered frame in one ID space.
+
+    Reads ``render_dir/<path>/<t0|t1>/NNNNN.exr`` for every pose of ``poses_json``; writes
+    ``out_dir/<path>/<t>/NNNNN.png`` (uint16 IDs), ``out_dir/tracks.csv`` and last
+    ``out_dir/index.json`` (render_dir, frames, files); with ``options.overlays`` also
+    ``out_dir/overlay/<path>/<t>/NNNNN.jpg`` (stale overlays are removed otherwise).
+    Returns a summary dict (frames, tracks).
+    """
+    render_dir, out_dir = Path(render_dir), Path(out_dir)
+    cams, _ = read_sequence(poses_json)
+    files = render_files(render_dir, cams)
+    options = options or SegmentOptions()
+    seg = make_segmenter(options)
+
+    def load(key):
+        rgb, alpha, depth = read_frame(files[key])
+        return dict(rgb=rgb, alpha=alpha, depth=depth, camera=cams[key[0]][key[2]])
+
+    # frames are read on demand (all of them at once would not fit in memory on long paths)
+    ids, tracks = track_paths((list(files), load), seg, track_options)
+    index = {"render_dir": os.path.relpath(render_dir, out_dir), "frames": []}
+    if not options.overlays and (out_dir / "overlay").is_dir():
+        shutil.rmtree(out_dir / "overlay")  # from an earlier run with overlays on
+    for (p, t, i), m in progress(sorted(ids.items()), desc="write IDs"):
+        rel = f"{p}/{t}/{i:05d}.png"
+        write_ids(out_dir / rel, m)
+        if options.overlays:
+            rgb = read_frame(files[(p, t, i)])[0]
+            write_image(out_dir / "overlay" / p / t / f"{i:05d}.jpg", _overlay(rgb, m))
+        index["frames"].append({"path": p, "t": t, "frame": i, "ids": rel,
+                                "render": os.path.relpath(files[(p, t, i)], out_dir)})
+    write_csv(out_dir / "tracks.csv", tracks)
+    write_json(out_dir / "index.json", index)
+    return {"frames": len(ids), "tracks": len(tracks)}

@@ -65,17 +65,17 @@ class InterpolateOptions:
         max_step: if set, each gap gets enough poses that consecutive camera centres are at most
             this far apart, as a fraction of the scene radius (median distance of the key
             camera centres from their centroid).
-
-    By default the frames are spaced by what the tracker needs (small steps between
-    consecutive frames), not by the photo count: photos taken closer together get fewer
-    poses between them, so render, segment and compare cost follows the length of the path
-    rather than the number of photos.
         reorder: ``auto`` (reorder a set into a short path when its capture order has a jump),
             ``always`` or ``never``.
         jump_factor: ``auto`` calls a capture order jumpy when its largest step costs more than
             ``jump_factor`` times its median step.
         rotation_weight: weight of the rotation angle (radians) against the centre distance
             (scene radii) in the step cost used for ordering.
+
+    By default the frames are spaced by what the tracker needs (small steps between
+    consecutive frames), not by the photo count: photos taken closer together get fewer
+    poses between them, so render, segment and compare cost follows the length of the path
+    rather than the number of photos.
     """
 
     n: int = 0

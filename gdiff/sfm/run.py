@@ -96,7 +96,7 @@ def run_poses(scene_dir: str | os.PathLike, out_dir: str | os.PathLike,
     try:
         n_upright = 0
         if any(o != 1 for o in tags.values()):
-            n_upright = write_upright_copies(photos, work / UPRIGHT, images)
+            n_upright = write_upright_copies(photos, work / UPRIGHT, images, tags)
             photos = work / UPRIGHT
         with _colmap_logging(opts.colmap_log):
             if known is not None:

@@ -32,11 +32,6 @@ def orientations(photos: Path, names: list[str]) -> dict[str, int]:
     return {n: exif_orientation(photos / n) for n in names}
 
 
-def tagged_images(photos: Path, names: list[str]) -> list[str]:
-    """The images (relative to ``photos``) whose EXIF orientation tag is not 1 (upright)."""
-    return [n for n, o in orientations(photos, names).items() if o != 1]
-
-
 def _eval_masks(photos: Path, images: list[tuple[str, str]]) -> list[str]:
     """The eval masks (relative paths) of the eval views among ``images``."""
     stems = {Path(n).stem for n, s in images if s in ("eval_before", "eval_after")}
@@ -62,13 +57,18 @@ def _write_upright(src: Path, dst: Path) -> None:
 
 
 def write_upright_copies(photos: str | Path, out_dir: str | Path,
-                         images: list[tuple[str, str]]) -> int:
+                         images: list[tuple[str, str]],
+                         tags: dict[str, int] | None = None) -> int:
     """Mirror the photos ``images`` (``(relative path, set)``) and the masks of their eval
     views from ``photos`` into ``out_dir``: EXIF-tagged files upright without the tag, the rest
-    hard-linked (copied where links are impossible). Returns the number of files re-encoded."""
+    hard-linked (copied where links are impossible). ``tags`` (name -> EXIF orientation, from
+    :func:`orientations`) saves reading the tags of files already read. Returns the number of
+    files re-encoded."""
     photos, out = Path(photos), Path(out_dir)
     names = [n for n, _ in images] + _eval_masks(photos, images)
-    tagged = set(tagged_images(photos, names))
+    known = tags or {}
+    tags = {**orientations(photos, [n for n in names if n not in known]), **known}
+    tagged = {n for n in names if tags[n] != 1}
     for n in names:
         if n in tagged:
             _write_upright(photos / n, out / n)

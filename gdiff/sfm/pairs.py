@@ -100,24 +100,29 @@ def word_histograms(descriptors: list[np.ndarray], num_words: int = 256,
     import cv2
 
     rng = np.random.default_rng(seed)
-    descs = [_unit_rows(d) if len(d) else np.zeros((0, 1), np.float32) for d in descriptors]
-    nonempty = [d for d in descs if len(d)]
-    if not nonempty:
-        return np.zeros((len(descs), 1), np.float32)
-    every = np.concatenate(nonempty)
-    train = every[rng.choice(len(every), size=min(max_train, len(every)), replace=False)]
+    sizes = np.array([len(d) for d in descriptors], dtype=np.int64)
+    total = int(sizes.sum())
+    if total == 0:
+        return np.zeros((len(descriptors), 1), np.float32)
+    # sample rows by their index in the images' concatenation, without building it (a copy
+    # of every descriptor as floats is large for thousands of features per image)
+    pick = rng.choice(total, size=min(max_train, total), replace=False)
+    ends = np.cumsum(sizes)
+    owner = np.searchsorted(ends, pick, side="right")
+    train = _unit_rows(np.stack([descriptors[o][p - ends[o] + sizes[o]]
+                                 for o, p in zip(owner, pick)]))
     w = max(1, min(num_words, len(train)))
     cv2.setRNGSeed(seed)
     criteria = (cv2.TERM_CRITERIA_MAX_ITER + cv2.TERM_CRITERIA_EPS, 10, 1e-4)
     _, _, words = cv2.kmeans(np.ascontiguousarray(train), w, None, criteria, 1,
                              cv2.KMEANS_PP_CENTERS)
     words = _unit_rows(words)
-    counts = np.zeros((len(descs), w), np.float32)
-    for i, d in enumerate(descs):
+    counts = np.zeros((len(descriptors), w), np.float32)
+    for i, d in enumerate(descriptors):
         if len(d):
-            counts[i] = np.bincount(_nearest_word(d, words), minlength=w)
+            counts[i] = np.bincount(_nearest_word(_unit_rows(d), words), minlength=w)
     df = np.count_nonzero(counts, axis=0)
-    idf = np.log((len(descs) + 1.0) / (df + 1.0)).astype(np.float32)
+    idf = np.log((len(descriptors) + 1.0) / (df + 1.0)).astype(np.float32)
     tf = counts / np.maximum(counts.sum(axis=1, keepdims=True), 1.0)
     return _unit_rows(tf * idf)
 

@@ -647,3 +647,78 @@ def test_decide_with_no_instance_gives_an_empty_table_with_its_columns():
     assert df.empty and df["changed"].dtype == bool
     changed = df[df["changed"]].drop(columns=["changed"])
     assert {"id", "type", "instance"} <= set(changed.columns)
+
+
+def _box_scene_depth(camera, box: bool, floater: bool = False) -> np.ndarray:
+    """z-depth [H, W] of a wall at world z = 5 seen by ``camera`` (looking along +z), with, when
+    ``box``, the front face of a box (|x|, |y| <= 0.6, z = 4) standing in front of it and, when
+    ``floater``, a patch of the wall (x in [1.2, 2.2], y in [-1, 0]) fitted at z = 4.3."""
+    H, W = camera.height, camera.width
+    u = (np.arange(W) + 0.5 - camera.cx) / camera.fx
+    v = (np.arange(H) + 0.5 - camera.cy) / camera.fy
+    cx = camera.c2w[0, 3]
+    z = np.full((H, W), 5.0)
+    for on, (x0, x1, y0, y1, zz) in ((floater, (1.2, 2.2, -1.0, 0.0, 4.3)),
+                                     (box, (-0.6, 0.6, -0.6, 0.6, 4.0))):
+        if on:
+            x = cx + u[None, :] * zz + 0 * v[:, None]
+            y = v[:, None] * zz + 0 * u[None, :]
+            z[(x >= x0) & (x <= x1) & (y >= y0) & (y <= y1)] = zz
+    return z
+
+
+def _wall_rgb(camera, z: np.ndarray, box: np.ndarray | None = None) -> np.ndarray:
+    """sRGB [H, W, 3]: a wall textured by its world x, y (so it renders the same at both
+    times, wherever its depth was fitted), and a red ``box`` (bool [H, W])."""
+    H, W = z.shape
+    u = (np.arange(W) + 0.5 - camera.cx) / camera.fx
+    v = (np.arange(H) + 0.5 - camera.cy) / camera.fy
+    x = camera.c2w[0, 3] + u[None, :] * 5.0 + 0 * v[:, None]
+    y = v[:, None] * 5.0 + 0 * u[None, :]
+    g = 0.45 + 0.15 * np.sin(7 * x) * np.cos(5 * y)
+    rgb = np.stack([g, g * 0.9, g * 0.8], -1).astype(np.float32)
+    if box is not None:
+        rgb[box] = (0.8, 0.1, 0.1)
+    return rgb
+
+
+def test_geometry_evidence_finds_an_object_merged_with_its_support():
+    """The segmenter gave the added box and the wall behind it one ID at both times, so the ID
+    comparison sees no change; the depth voted in 3D over the poses finds the box, and only
+    it: a blob of wrong depth that shows at one pose only (fit noise) is voted away, and a patch
+    the fit put nearer at t0 at every pose but that renders the same at both times (a floater)
+    is not a change either."""
+    from gdiff.cameras import Camera
+
+    rng = np.random.default_rng(3)
+    cams = []
+    for x in np.linspace(-1.0, 1.0, 9):
+        c2w = np.eye(4)
+        c2w[0, 3] = x
+        cams.append(Camera(160, 120, 100.0, 100.0, 80.0, 60.0, c2w))
+    ids, frames, truth = {}, {}, {}
+    for i, cam in enumerate(cams):
+        z0, z1 = _box_scene_depth(cam, False, floater=True), _box_scene_depth(cam, True)
+        truth[i] = z1 < 4.5
+        rgb0, rgb1 = _wall_rgb(cam, z0), _wall_rgb(cam, z1, truth[i])
+        if i == 4:  # a nearer, darker blob at t0 at this pose only, away from the box
+            r, c = rng.integers(2, 8), rng.integers(2, 8)
+            z0[r:r + 25, c:c + 25] *= 0.8
+            rgb0[r:r + 25, c:c + 25] = (0.1, 0.3, 0.8)
+        for t, z, rgb in (("t0", z0, rgb0), ("t1", z1, rgb1)):
+            ids[("p1", t, i)] = np.ones(z.shape, np.int32)
+            frames[("p1", t, i)] = dict(depth=z, camera=cam, rgb=rgb)
+    masks, df = compare_paths(ids, frames, CompareOptions())
+    assert not df["changed"].any()  # nothing for the ID comparison
+    for i in range(len(cams)):
+        m0, m1 = masks[("p1", i)]
+        assert not m0.any(), i  # neither the one-pose blob nor the floater is a change
+        hit = (m1 & truth[i]).sum() / truth[i].sum()
+        assert hit > 0.75 and (m1 & ~truth[i]).sum() <= 0.05 * truth[i].sum(), (i, hit)
+    off, _ = compare_paths(ids, frames, dataclasses.replace(CompareOptions(), geometry=False))
+    assert not any(m0.any() or m1.any() for m0, m1 in off.values())
+    # without the appearance test the floater would count: it is there at every pose
+    for f in frames.values():
+        f.pop("rgb")
+    no_rgb, _ = compare_paths(ids, frames, CompareOptions())
+    assert sum(m0.sum() for m0, _ in no_rgb.values()) > 0

@@ -8,7 +8,9 @@ The rule ``compare`` maps to this package:
   vote over poses, the type (added, removed, moved) and the grouping of pieces into objects;
   also :func:`detect_changes_pair`, the same comparison on one image pair (``idcompare``);
 * :mod:`.coverage` — which pixels of a frame the training photos of each time saw, from
-  several directions (only those are judged).
+  several directions (only those are judged);
+* :mod:`.geometry` — surfaces that appear or vanish in 3D, voted over all poses whatever
+  their IDs (objects the segmenter merged with their support), added to the masks.
 
 The appearance test (:mod:`gdiff.appearance`) stays a top-level module: the tracker of the
 ``segment`` stage uses it as well.
@@ -17,8 +19,9 @@ The appearance test (:mod:`gdiff.appearance`) stays a top-level module: the trac
 from .change import (CHANGE_TYPES, CompareOptions, change_masks, decide, detect_changes_pair,
                      pose_stats)
 from .coverage import DepthView, nearest_views, observed
+from .geometry import GeometryEvidence, pose_flags
 from .stage import compare, compare_paths, key_views
 
-__all__ = ["CHANGE_TYPES", "CompareOptions", "DepthView", "change_masks", "compare",
-           "compare_paths", "decide", "detect_changes_pair", "key_views", "nearest_views",
-           "observed", "pose_stats"]
+__all__ = ["CHANGE_TYPES", "CompareOptions", "DepthView", "GeometryEvidence", "change_masks",
+           "compare", "compare_paths", "decide", "detect_changes_pair", "key_views",
+           "nearest_views", "observed", "pose_flags", "pose_stats"]

@@ -95,6 +95,14 @@ class CompareOptions:
     observed_max_views: per frame only the key views of each time that see most of its
         surface are used, at most this many (:func:`gdiff.compare.coverage.nearest_views`; keeps the
         cost per frame independent of the number of photos). 0 uses every key view.
+    geometry: also mark surfaces that appear or vanish in 3D (depth voted over all poses,
+        :mod:`gdiff.compare.geometry`), whatever their IDs: objects the segmenter merged with
+        their support.
+    geometry_voxel_px: voxel side of that vote, in pixels at the median depth of the frames.
+    geometry_vote: a voxel is changed when flagged at >= this fraction of the poses seeing it.
+    geometry_min_poses: ... and at this many poses at least.
+    geometry_min_object: smallest changed object kept, as a fraction of the image area at the
+        median depth.
     """
 
     presence_iou: float = 0.3
@@ -114,6 +122,11 @@ class CompareOptions:
     observed_min_views: int = 3
     observed_min_parallax: float = 10.0
     observed_max_views: int = 8
+    geometry: bool = True
+    geometry_voxel_px: float = 4.0
+    geometry_vote: float = 0.5
+    geometry_min_poses: int = 3
+    geometry_min_object: float = 0.003
 
     def __post_init__(self):
         if not 0 <= self.observed_min_parallax < 180:
@@ -126,8 +139,14 @@ class CompareOptions:
             raise ConfigError("config keys 'compare.evidence_open' (>= 0), "
                               "'compare.observed_depth_tol' (> 0) and "
                               "'compare.observed_min_views' (>= 1) are out of range")
+        if self.geometry_voxel_px <= 0 or self.geometry_min_poses < 1 \
+                or not 0 <= self.geometry_min_object < 1:
+            raise ConfigError("config keys 'compare.geometry_voxel_px' (> 0), "
+                              "'compare.geometry_min_poses' (>= 1) and "
+                              "'compare.geometry_min_object' (in [0, 1)) are out of range")
         for k in ("presence_iou", "min_evidence", "vote_frac", "moved_similarity",
-                  "same_similarity", "min_observed", "texture_color_similarity"):
+                  "same_similarity", "min_observed", "texture_color_similarity",
+                  "geometry_vote"):
             if not 0.0 <= getattr(self, k) <= 1.0:
                 raise ConfigError(f"config key 'compare.{k}' must lie in [0, 1]")
 

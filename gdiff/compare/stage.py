@@ -24,8 +24,9 @@ from ..errors import SceneError
 from ..frames import TIMES, Key, key_frames, read_frame, read_sequence
 from ..io import read_ids, read_json, write_csv, write_mask
 from ..log import progress
-from .change import CompareOptions, change_masks, decide, pose_stats
+from .change import CompareOptions, appearance_change, change_masks, decide, pose_stats
 from .coverage import DepthView, observed
+from .geometry import GeometryEvidence, pose_flags
 
 log = logging.getLogger("gdiff.compare")
 
@@ -63,6 +64,7 @@ def compare_paths(ids: dict[Key, np.ndarray], frames: dict[Key, dict] | None,
     poses = sorted({(p, i) for p, _, i in ids})
     views = key_views(get, keys) if keys else None
     stats = []
+    geo = None
     for p, i in progress(poses, desc="compare"):
         f0, f1 = get((p, "t0", i)), get((p, "t1", i))
         cam = f0.get("camera")
@@ -78,10 +80,33 @@ def compare_paths(ids: dict[Key, np.ndarray], frames: dict[Key, dict] | None,
             ids[(p, "t0", i)], ids[(p, "t1", i)], o, f0.get("rgb"), f1.get("rgb"),
             f0.get("depth"), f1.get("depth"), focal=cam.fx if cam is not None else None,
             camera=cam, observed0=seen[0], observed1=seen[1])))
+        z0, z1 = f0.get("depth"), f1.get("depth")
+        if o.geometry and cam is not None and z0 is not None and z1 is not None:
+            if geo is None:
+                geo = GeometryEvidence(o.geometry_voxel_px, o.geometry_vote,
+                                       o.geometry_min_poses,
+                                       int(round(o.geometry_min_object * z0.size)))
+            known = seen[0] & seen[1] if seen[0] is not None and seen[1] is not None else None
+            differ = None
+            if f0.get("rgb") is not None and f1.get("rgb") is not None:
+                differ = appearance_change(f0["rgb"], f1["rgb"], o.chroma_tol, o.ncc_min)
+            geo.add((p, i), z0, z1, cam, *pose_flags(z0, z1, o.depth_change_rel,
+                                                     o.evidence_open, known, differ))
     df = decide(stats, o)
     changed = df.loc[df["changed"], "id"].tolist()
     masks = {(p, i): change_masks(ids[(p, "t0", i)], ids[(p, "t1", i)], changed)
              for p, i in poses}
+    if geo is not None:
+        g = geo.finish()
+        added = 0
+        for (p, i), (m0, m1) in masks.items():
+            if (p, i) in geo:
+                g0, g1 = geo.masks((p, i))
+                added += int((g0 & ~m0).sum() + (g1 & ~m1).sum())
+                masks[(p, i)] = (m0 | g0, m1 | g1)
+        log.info("geometry: voxel %.4g scene units, %d changed voxels in %d objects; %d pixels "
+                 "added to the ID masks over %d poses", g["voxel"] or 0, g["changed_voxels"],
+                 g["objects"], added, len(masks))
     log.info("compared %d poses: %d of %d IDs changed (%s)", len(poses), len(changed), len(df),
              ", ".join(f"{t}: {(df['type'] == t).sum()}" for t in ("added", "removed", "moved")))
     return masks, df

@@ -1,0 +1,219 @@
+"""Geometric change evidence in 3D: surfaces that appear or vanish between the two times,
+voted over every pose that sees them.
+
+The ID comparison (:mod:`gdiff.compare.change`) judges whole segments; when the segmenter
+merges an object with the surface it stands on at one time (a cone on a table, one segment),
+no ID is absent at that time and the object is missed. The rendered depth still shows it: at
+the same pose, the surface at one time lies clearly nearer than at the other.
+
+Per pose (:func:`pose_flags`), a pixel is an *appearing* surface at t1 when its t1 surface is
+nearer than its t0 surface by more than ``depth_change_rel`` in inverse depth relative to the
+pose's median depth (or has a surface at t1 only) and its appearance differs between the times
+(a surface that moved in depth but renders as before is a floater of the fit, not a change
+anyone could see); symmetrically a *vanishing* surface at t0. Both count only inside coherent
+blobs (``evidence_open``) and, with key views, where photos of both times observed the surface.
+A change of appearance alone (a moved shadow or highlight, but also a flat object) never
+counts here; the ID comparison handles those.
+
+Each such pixel's world point (at its own time) votes for a voxel; every observed pixel with a
+surface at that time counts as a look at its voxel. A voxel is flagged when at least
+``geometry_vote`` of the poses that looked at it flagged it, and at least ``geometry_min_poses``
+did. Flagged voxels are grouped into 3D components (26-neighbourhood); a component is a change
+when it holds an object's worth of voxels. The voxel side is scene-relative:
+``geometry_voxel_px`` pixels at the median depth of the frames, so an object spans many voxels
+whatever the scene's units.
+
+Back at each pose, flagged pixels whose voxel lies in a changed component are change pixels of
+their time (``mask_t0``: vanished surfaces, ``mask_t1``: appeared surfaces).
+
+Coordinates: world frame of the poses stage; depth is camera-frame z (OpenCV axes, pixel
+centres at +0.5), as rendered into the EXR ``Z`` channel.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import connected_components
+
+from ..track import world_points
+from .change import coherent
+
+log = logging.getLogger("gdiff.compare")
+
+# 26-neighbourhood offsets of a voxel (the voxel itself excluded)
+_NEIGHBOURS = np.array([(i, j, k) for i in (-1, 0, 1) for j in (-1, 0, 1) for k in (-1, 0, 1)
+                        if (i, j, k) != (0, 0, 0)], np.int64)
+_BITS = 21  # voxel coordinates packed into one int64 key, 21 bits per axis (signed offset)
+_OFF = 1 << (_BITS - 1)
+
+
+def _pack(v: np.ndarray) -> np.ndarray:
+    """int64 keys [M] of integer voxel coordinates [M, 3]."""
+    v = v.astype(np.int64) + _OFF
+    return (v[:, 0] << (2 * _BITS)) | (v[:, 1] << _BITS) | v[:, 2]
+
+
+def _unpack(k: np.ndarray) -> np.ndarray:
+    mask = (1 << _BITS) - 1
+    return np.stack([(k >> (2 * _BITS)) & mask, (k >> _BITS) & mask, k & mask], -1) - _OFF
+
+
+@dataclass
+class _Pose:
+    """What pass 2 needs of one pose: flagged pixels (flat indices) and their voxel keys."""
+    shape: tuple[int, int]
+    idx: list = field(default_factory=lambda: [None, None])    # per time: int64 [K]
+    keys: list = field(default_factory=lambda: [None, None])   # per time: int64 [K]
+
+
+class GeometryEvidence:
+    """Accumulates the per-pose evidence (:meth:`add`), then decides (:meth:`finish`) and
+    returns per pose the change pixels of each time (:meth:`masks`). See the module docstring.
+
+    Args:
+        voxel_px: voxel side in pixels at the median depth of the frames.
+        vote: fraction of the looks at a voxel that must flag it.
+        min_poses: a voxel must be flagged at this many poses at least.
+        min_object_px: a change must hold at least ``min_object_px / voxel_px**2`` voxels (at
+            least 2): an object seen as ``min_object_px`` pixels (area) at the median depth.
+        stride: pixels sampled every ``stride`` rows and columns for the looks (the flagged
+            pixels are all kept).
+    """
+
+    def __init__(self, voxel_px: float = 4.0, vote: float = 0.5, min_poses: int = 3,
+                 min_object_px: int = 200, stride: int = 2):
+        self.voxel_px, self.vote, self.min_poses = voxel_px, vote, min_poses
+        self.min_object_px, self.stride = min_object_px, stride
+        self._poses: dict = {}
+        # per time, per pose: world points [K, 3] float32 of the looks and of the flagged pixels
+        self._looks: list[list[np.ndarray]] = [[], []]
+        self._flags: list[list[np.ndarray]] = [[], []]
+        self._scale: list[float] = []                     # median z / f per pose
+        self.voxel: float | None = None
+        self.changed: list[np.ndarray] = [np.zeros(0, np.int64), np.zeros(0, np.int64)]
+        self.n_objects = 0
+
+    def __contains__(self, pose) -> bool:
+        return pose in self._poses
+
+    def add(self, pose, depth0: np.ndarray, depth1: np.ndarray, camera, flagged0: np.ndarray,
+            flagged1: np.ndarray, looked0: np.ndarray, looked1: np.ndarray) -> None:
+        """One pose: z-depth [H, W] at t0 and t1, its camera (camera-to-world ``c2w``,
+        intrinsics) and the bool [H, W] masks of :func:`pose_flags`: ``flagged0`` vanished
+        (t0) and ``flagged1`` appeared (t1) surfaces, ``looked{t}`` pixels whose surface at
+        time t counts as a look."""
+        rec = _Pose(tuple(depth0.shape))
+        sub = np.zeros(depth0.shape, bool)
+        sub[::self.stride, ::self.stride] = True
+        for t, (z, fl, lk) in enumerate(((depth0, flagged0, looked0), (depth1, flagged1, looked1))):
+            P = world_points(z, camera).reshape(-1, 3)
+            ok = np.isfinite(P).all(-1)
+            fl = np.asarray(fl, bool).ravel() & ok
+            lk = (np.asarray(lk, bool).ravel() & sub.ravel() & ok) | fl
+            rec.idx[t] = np.flatnonzero(fl)
+            self._flags[t].append(P[rec.idx[t]].astype(np.float32))
+            self._looks[t].append(P[lk].astype(np.float32))
+            zz = np.asarray(z)[np.isfinite(z) & (z > 0)]
+            if zz.size:
+                self._scale.append(float(np.median(zz)) / float(camera.fx))
+        self._poses[pose] = rec
+
+    def _keys(self, P: np.ndarray) -> np.ndarray:
+        return _pack(np.floor(P / self.voxel)) if len(P) else np.zeros(0, np.int64)
+
+    def finish(self) -> dict:
+        """Decide the changed voxels; returns counts for the log."""
+        stats = {"voxel": None, "changed_voxels": 0, "objects": 0}
+        if not self._scale:
+            return stats
+        self.voxel = stats["voxel"] = self.voxel_px * float(np.median(self._scale))
+        min_vox = max(2, int(np.ceil(self.min_object_px / self.voxel_px ** 2)))
+        for t in (0, 1):
+            looks, flags = [], []
+            for pose, L, F in zip(self._poses.values(), self._looks[t], self._flags[t]):
+                pose.keys[t] = self._keys(F)
+                looks.append(np.unique(self._keys(L)))
+                flags.append(np.unique(pose.keys[t]))
+            self._looks[t], self._flags[t] = [], []
+            lk, ln = np.unique(np.concatenate(looks), return_counts=True)
+            fk, fn = np.unique(np.concatenate(flags), return_counts=True)
+            seen = ln[np.searchsorted(lk, fk)]  # every flag is a look too
+            self.changed[t] = self._objects(fk[(fn >= self.min_poses) & (fn >= self.vote * seen)],
+                                            min_vox)
+            stats["changed_voxels"] += len(self.changed[t])
+        stats["objects"] = self.n_objects
+        return stats
+
+    def _objects(self, keys: np.ndarray, min_vox: int) -> np.ndarray:
+        """Keys of the voxels of the 26-connected components of ``keys`` (sorted, unique) that
+        hold at least ``min_vox`` voxels."""
+        if len(keys) < min_vox:
+            return np.zeros(0, np.int64)
+        v = _unpack(keys)
+        rows, cols = [], []
+        for d in _NEIGHBOURS:
+            nk = _pack(v + d)
+            j = np.minimum(np.searchsorted(keys, nk), len(keys) - 1)
+            hit = keys[j] == nk
+            rows.append(np.flatnonzero(hit))
+            cols.append(j[hit])
+        r, c = np.concatenate(rows), np.concatenate(cols)
+        graph = coo_matrix((np.ones(len(r), np.int8), (r, c)), shape=(len(keys), len(keys)))
+        n, lab = connected_components(graph, directed=False)
+        keep = np.bincount(lab, minlength=n) >= min_vox
+        self.n_objects += int(keep.sum())
+        return keys[keep[lab]]
+
+    def masks(self, pose) -> tuple[np.ndarray, np.ndarray]:
+        """bool [H, W] change pixels of ``pose`` at t0 (vanished) and t1 (appeared)."""
+        rec = self._poses[pose]
+        out = []
+        for t in (0, 1):
+            m = np.zeros(rec.shape[0] * rec.shape[1], bool)
+            if len(self.changed[t]) and rec.keys[t] is not None and len(rec.keys[t]):
+                m[rec.idx[t][np.isin(rec.keys[t], self.changed[t])]] = True
+            out.append(m.reshape(rec.shape))
+        return out[0], out[1]
+
+
+def pose_flags(depth0: np.ndarray, depth1: np.ndarray, rel: float, open_frac: float,
+               known: np.ndarray | None = None, looks_differ: np.ndarray | None = None
+               ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Per-pose input of :meth:`GeometryEvidence.add` from the z-depth [H, W] at t0 and t1.
+
+    Returns bool [H, W] ``(vanished0, appeared1, looked0, looked1)``:
+
+    * ``vanished0``: pixels whose surface at t0 lies nearer than at t1 (or exists at t0 only);
+      ``appeared1``: the same at t1. "Nearer" is measured in inverse depth relative to the
+      pose's median depth ``zm``: ``(1/z_near - 1/z_far) * zm > rel``; at the median depth this
+      is a relative depth change of ``rel``; nearer surfaces need less, farther ones more (the
+      depth a fit resolves from a baseline shrinks with the square of the distance). Only
+      pixels that also ``looks_differ`` (bool [H, W], e.g.
+      :func:`~gdiff.compare.change.appearance_change`, which ignores changes of light; None:
+      every pixel) and only inside blobs at least ``open_frac`` of the image's longer side
+      wide (:func:`~gdiff.compare.change.coherent`);
+    * ``looked0`` / ``looked1``: pixels with a surface at each time.
+
+    ``known`` (bool [H, W], observed by photos of both times, :mod:`gdiff.compare.coverage`)
+    restricts all four.
+    """
+    z0 = np.asarray(depth0, np.float64)
+    z1 = np.asarray(depth1, np.float64)
+    v0 = np.isfinite(z0) & (z0 > 0)
+    v1 = np.isfinite(z1) & (z1 > 0)
+    if known is not None:
+        v0, v1 = v0 & known, v1 & known
+    if not (v0.any() and v1.any()):
+        none = np.zeros(z0.shape, bool)
+        return none, none, v0, v1
+    zm = float(np.median(np.concatenate([z0[v0], z1[v1]])))
+    d0 = np.where(v0, zm / np.where(v0, z0, 1.0), 0.0)  # inverse depth x median depth
+    d1 = np.where(v1, zm / np.where(v1, z1, 1.0), 0.0)
+    differ = np.ones(z0.shape, bool) if looks_differ is None else np.asarray(looks_differ, bool)
+    vanished = coherent(v0 & (d0 - d1 > rel) & differ, open_frac)
+    appeared = coherent(v1 & (d1 - d0 > rel) & differ, open_frac)
+    return vanished, appeared, v0, v1

@@ -48,13 +48,16 @@ L3d (kNN KL), plus the fit stage's L1 + L_TV when the geometry is fine-tuned too
   1-channel change logit: Gaussians that straddle a changed object's outline adapt (synth
   demo, exact masks, union map F1 at 0.5:
   0.948 frozen throughout, 0.978 two-phase, 0.982 joint throughout at 1.6x the time).
-* Map threshold (``threshold``, 0.5 by default): ``None`` takes the probability threshold
-  whose union maps best reproduce the compare stage's union masks at the key views (max
-  pooled F1 over a 0.01 grid, :func:`choose_threshold`, after training). Not the default:
-  where the compare masks are noisy (false changes on poorly fitted surfaces) that threshold
-  follows the noise and the eval-view F1 drops (bench_desk proxy: 0.15 chosen, F1 0.35 ->
-  0.23). The value used, how it was chosen, the key-view best and the key-view F1 curve go to
-  ``partition/threshold.json`` and the log.
+* Map threshold (``threshold``): ``None`` (the default) keeps 0.5, the probability a
+  BCE-trained head calls even, unless the probability threshold whose union maps best
+  reproduce the compare stage's union masks at the key views (max pooled F1 over a 0.01
+  grid, :func:`choose_threshold`, after training) beats 0.5 there by more than
+  ``threshold_gain`` F1 (:func:`~gdiff.partition.train.operating_point`). A head that could
+  not fit its supervision (masks that disagree between views) so gets the threshold its own
+  views call for, while a nearly flat curve does not move it: on noisy compare masks (false
+  changes on poorly fitted surfaces) the maximum follows the noise. A number fixes the
+  threshold. The value used, how it was chosen, the key-view best and the key-view F1 curve go
+  to ``partition/threshold.json`` and the log.
 
 Modules: :mod:`.options` (``PartitionOptions``), :mod:`.head` (encodings + 1x1 conv),
 :mod:`.losses` (BCE, L3d), :mod:`.render` (rasterized features, cached blend weights),
@@ -79,7 +82,7 @@ from .model import (FORMAT, VERSION, PartitionModel, load_partition_model, parti
 from .options import PartitionOptions
 from .render import (BlendWeights, blend_weights, blended_change_logit, change_logit_parts,
                      render_blended, render_features)
-from .train import fine_tune, run_key, train_partition
+from .train import fine_tune, operating_point, run_key, train_partition
 
 __all__ = [
     "CHANGED", "FORMAT", "KEYFRAME_COLUMNS", "MIN_VISIBLE_OPACITY", "THRESHOLDS", "UNCHANGED",
@@ -89,7 +92,8 @@ __all__ = [
     "choose_threshold", "key_view_maps",
     "change_logit_parts", "change_map_main", "change_probability", "changed_fraction",
     "fine_tune", "ignore_weight", "l3d_step", "load_partition_model", "mask_bce",
-    "neighbour_disagreement", "neighbour_kl", "overlay", "partition_blob", "pose_from_values",
+    "neighbour_disagreement", "neighbour_kl", "operating_point", "overlay", "partition_blob",
+    "pose_from_values",
     "read_key_views", "render_blended", "render_change_map", "render_features", "run_key",
     "save_partition_model", "split_gaussians", "train_partition", "write_key_maps",
     "write_split_ply", "_load_image", "_load_mask",

@@ -36,9 +36,11 @@ class PartitionOptions:
                                       # training size (cached blend weights: 0.5 = a quarter
                                       # of the pixels, of the memory and of the time per step)
     lambda_tv: float | None = None    # weight of the HexPlane TV; None = the fit stage's value
-    threshold: float | None = 0.5     # probability above which a pixel / Gaussian is "changed";
-                                      # None = the one that best reproduces the key-view masks
-                                      # (max F1; partition/threshold.json has it either way)
+    threshold: float | None = None    # probability above which a pixel / Gaussian is "changed";
+                                      # None = from the key views: 0.5 unless the threshold that
+                                      # best reproduces their masks gains more than
+                                      # threshold_gain F1 there (partition/threshold.json)
+    threshold_gain: float = 0.01      # see threshold
     max_side: int | None = None       # longest image side for training; None = the fit's, 0 = full
     checkpoint_every: int = 500       # write a resumable checkpoint every this many steps
     log_every: int = 50               # rows of train_log.csv
@@ -56,6 +58,8 @@ class PartitionOptions:
         if self.threshold is not None and not 0.0 < self.threshold < 1.0:
             raise ValueError("threshold must lie in (0, 1), or be null (chosen from the key "
                              "views)")
+        if not 0.0 <= self.threshold_gain < 1.0:
+            raise ValueError("threshold_gain must lie in [0, 1)")
         if self.lambda_2d < 0 or self.lambda_3d < 0:
             raise ValueError("lambda_2d and lambda_3d must be >= 0")
         if self.max_side is not None and self.max_side < 0:

@@ -375,25 +375,45 @@ def train_partition(fit_model_path, cameras_json, keyframes_csv, scene_dir, out_
     return summary
 
 
+def operating_point(best_threshold: float | None, best_f1: float, f1_at_half: float,
+                    min_gain: float) -> tuple[float, str]:
+    """The map threshold when ``partition.threshold`` is null, and why.
+
+    0.5 is the probability a BCE-trained head calls even; it stays unless the threshold that
+    best reproduces the key-view masks (``best_threshold``, pooled F1 ``best_f1``) beats it
+    there by more than ``min_gain`` F1: a head that could not fit its supervision (masks that
+    disagree between views leave changed Gaussians at low probabilities) gets the threshold
+    its own training views call for, while a nearly flat F1 curve is not read as a reason to
+    move (on views it was trained on, the maximum also fits their noise).
+    """
+    if best_threshold is None:
+        return 0.5, "default 0.5 (the key-view masks have no changed or no unchanged pixel)"
+    if best_f1 - f1_at_half > min_gain:
+        return float(best_threshold), (f"max F1 over the key views ({best_f1:.3f}, "
+                                       f"{best_f1 - f1_at_half:+.3f} over 0.5)")
+    return 0.5, (f"0.5: the key-view maximum ({best_threshold:.2f}) gains "
+                 f"{best_f1 - f1_at_half:.3f} F1 there, <= partition.threshold_gain")
+
+
 def _pick_threshold(opts: PartitionOptions, views, maps, path) -> float:
-    """The map threshold: ``opts.threshold`` when set, else the one whose union maps best
-    reproduce the compare stage's union masks at the key views (max pooled F1,
+    """The map threshold: ``opts.threshold`` when set, else :func:`operating_point` from the
+    key views (how well the union maps reproduce the compare stage's union masks there,
     :func:`choose_threshold`). Logs it and writes ``path`` (JSON: the threshold, how it was
     chosen, the key-view F1 at it and at 0.5, the key-view best and the F1 curve)."""
     masks = [_load_mask(v.masks["union"], v.camera) > 0.5 for v in views]
     best = choose_threshold([m["prob"] for m in maps], masks)
     curve = best["curve"].set_index("threshold")["F1"]
-    if opts.threshold is not None:
-        th, source = float(opts.threshold), "fixed (partition.threshold)"
-    elif best["threshold"] is None:
-        th, source = 0.5, "default 0.5 (the key-view masks have no changed or no unchanged pixel)"
-    else:
-        th, source = best["threshold"], "max F1 over the key views"
 
     def f1_at(x):
         s = scores_from_counts(*np.sum([confusion(m["prob"] > x, k) for m, k in
                                         zip(maps, masks)], axis=0))
         return s["F1"]
+
+    if opts.threshold is not None:
+        th, source = float(opts.threshold), "fixed (partition.threshold)"
+    else:
+        th, source = operating_point(best["threshold"], best["f1"], f1_at(0.5),
+                                     opts.threshold_gain)
 
     info = {"threshold": th, "source": source, "key_view_f1": f1_at(th),
             "key_view_f1_at_0.5": f1_at(0.5), "key_view_best_threshold": best["threshold"],

@@ -534,7 +534,7 @@ def test_pieces_of_one_object_form_one_instance():
     assert df.loc[1, "instance"] == 0
 
 
-def test_flat_object_removed_from_a_staying_surface_is_a_change():
+def test_flat_object_removed_from_or_added_to_a_staying_surface_is_a_change():
     """A flat object (a pile of books) lies on a table at t0 and is gone at t1: its depth
     barely changes and at t1 its pixels belong to the table segment, which stays. Observed at
     both times, the table showing there at t1 and the object standing out from it at t0, its
@@ -575,6 +575,12 @@ def test_flat_object_removed_from_a_staying_surface_is_a_change():
     assert not pose_stats(ids0, ids1, o, rgb0, rgb1, z0, z1)[2]["confirmed"]
     df = decide([("pose", st)], o).set_index("id")
     assert df.at[2, "changed"] and df.at[2, "type"] == "removed"
+    # the same books put onto the table instead (t0 and t1 swapped): added, and the shadow
+    # and the rim, now at t1, are still not changes
+    st = pose_stats(ids1, ids0, o, rgb1, rgb0, z1, z0, observed0=seen, observed1=seen)
+    assert st[2]["confirmed"] and not st[3]["confirmed"] and not st[5]["confirmed"]
+    df = decide([("pose", st)], o).set_index("id")
+    assert df.at[2, "changed"] and df.at[2, "type"] == "added"
 
 
 def test_floor_resegmented_by_moved_glare_is_not_a_change():

@@ -78,16 +78,16 @@ class GeometryEvidence:
         voxel_px: voxel side in pixels at the median depth of the frames.
         vote: fraction of the looks at a voxel that must flag it.
         min_poses: a voxel must be flagged at this many poses at least.
-        min_object_px: a change must hold at least ``min_object_px / voxel_px**2`` voxels (at
-            least 2): an object seen as ``min_object_px`` pixels (area) at the median depth.
+        min_object: a change must hold at least ``min_object * H * W / voxel_px**2`` voxels
+            (at least 2): an object seen as that share of the image at the median depth.
         stride: pixels sampled every ``stride`` rows and columns for the looks (the flagged
             pixels are all kept).
     """
 
     def __init__(self, voxel_px: float = 4.0, vote: float = 0.5, min_poses: int = 3,
-                 min_object_px: int = 200, stride: int = 2):
+                 min_object: float = 0.003, stride: int = 2):
         self.voxel_px, self.vote, self.min_poses = voxel_px, vote, min_poses
-        self.min_object_px, self.stride = min_object_px, stride
+        self.min_object, self.stride = min_object, stride
         self._poses: dict = {}
         # per time, per pose: world points [K, 3] float32 of the looks and of the flagged pixels
         self._looks: list[list[np.ndarray]] = [[], []]
@@ -95,7 +95,6 @@ class GeometryEvidence:
         self._scale: list[float] = []                     # median z / f per pose
         self.voxel: float | None = None
         self.changed: list[np.ndarray] = [np.zeros(0, np.int64), np.zeros(0, np.int64)]
-        self.n_objects = 0
 
     def __contains__(self, pose) -> bool:
         return pose in self._poses
@@ -131,7 +130,9 @@ class GeometryEvidence:
         if not self._scale:
             return stats
         self.voxel = stats["voxel"] = self.voxel_px * float(np.median(self._scale))
-        min_vox = max(2, int(np.ceil(self.min_object_px / self.voxel_px ** 2)))
+        h, w = next(iter(self._poses.values())).shape
+        min_px = int(round(self.min_object * h * w))
+        min_vox = max(2, int(np.ceil(min_px / self.voxel_px ** 2)))
         for t in (0, 1):
             looks, flags = [], []
             for pose, L, F in zip(self._poses.values(), self._looks[t], self._flags[t]):
@@ -142,31 +143,11 @@ class GeometryEvidence:
             lk, ln = np.unique(np.concatenate(looks), return_counts=True)
             fk, fn = np.unique(np.concatenate(flags), return_counts=True)
             seen = ln[np.searchsorted(lk, fk)]  # every flag is a look too
-            self.changed[t] = self._objects(fk[(fn >= self.min_poses) & (fn >= self.vote * seen)],
-                                            min_vox)
+            self.changed[t], n = _objects(fk[(fn >= self.min_poses) & (fn >= self.vote * seen)],
+                                          min_vox)
             stats["changed_voxels"] += len(self.changed[t])
-        stats["objects"] = self.n_objects
+            stats["objects"] += n
         return stats
-
-    def _objects(self, keys: np.ndarray, min_vox: int) -> np.ndarray:
-        """Keys of the voxels of the 26-connected components of ``keys`` (sorted, unique) that
-        hold at least ``min_vox`` voxels."""
-        if len(keys) < min_vox:
-            return np.zeros(0, np.int64)
-        v = _unpack(keys)
-        rows, cols = [], []
-        for d in _NEIGHBOURS:
-            nk = _pack(v + d)
-            j = np.minimum(np.searchsorted(keys, nk), len(keys) - 1)
-            hit = keys[j] == nk
-            rows.append(np.flatnonzero(hit))
-            cols.append(j[hit])
-        r, c = np.concatenate(rows), np.concatenate(cols)
-        graph = coo_matrix((np.ones(len(r), np.int8), (r, c)), shape=(len(keys), len(keys)))
-        n, lab = connected_components(graph, directed=False)
-        keep = np.bincount(lab, minlength=n) >= min_vox
-        self.n_objects += int(keep.sum())
-        return keys[keep[lab]]
 
     def masks(self, pose) -> tuple[np.ndarray, np.ndarray]:
         """bool [H, W] change pixels of ``pose`` at t0 (vanished) and t1 (appeared)."""
@@ -178,6 +159,26 @@ class GeometryEvidence:
                 m[rec.idx[t][np.isin(rec.keys[t], self.changed[t])]] = True
             out.append(m.reshape(rec.shape))
         return out[0], out[1]
+
+
+def _objects(keys: np.ndarray, min_vox: int) -> tuple[np.ndarray, int]:
+    """Keys of the voxels of the 26-connected components of ``keys`` (sorted, unique) that
+    hold at least ``min_vox`` voxels, and the number of those components."""
+    if len(keys) < min_vox:
+        return np.zeros(0, np.int64), 0
+    v = _unpack(keys)
+    rows, cols = [], []
+    for d in _NEIGHBOURS:
+        nk = _pack(v + d)
+        j = np.minimum(np.searchsorted(keys, nk), len(keys) - 1)
+        hit = keys[j] == nk
+        rows.append(np.flatnonzero(hit))
+        cols.append(j[hit])
+    r, c = np.concatenate(rows), np.concatenate(cols)
+    graph = coo_matrix((np.ones(len(r), np.int8), (r, c)), shape=(len(keys), len(keys)))
+    n, lab = connected_components(graph, directed=False)
+    keep = np.bincount(lab, minlength=n) >= min_vox
+    return keys[keep[lab]], int(keep.sum())
 
 
 def pose_flags(depth0: np.ndarray, depth1: np.ndarray, rel: float, open_frac: float,

@@ -64,7 +64,8 @@ def compare_paths(ids: dict[Key, np.ndarray], frames: dict[Key, dict] | None,
     poses = sorted({(p, i) for p, _, i in ids})
     views = key_views(get, keys) if keys else None
     stats = []
-    geo = None
+    geo = (GeometryEvidence(o.geometry_voxel_px, o.geometry_vote, o.geometry_min_poses,
+                            o.geometry_min_object) if o.geometry else None)
     for p, i in progress(poses, desc="compare"):
         f0, f1 = get((p, "t0", i)), get((p, "t1", i))
         cam = f0.get("camera")
@@ -81,11 +82,7 @@ def compare_paths(ids: dict[Key, np.ndarray], frames: dict[Key, dict] | None,
             f0.get("depth"), f1.get("depth"), focal=cam.fx if cam is not None else None,
             camera=cam, observed0=seen[0], observed1=seen[1])))
         z0, z1 = f0.get("depth"), f1.get("depth")
-        if o.geometry and cam is not None and z0 is not None and z1 is not None:
-            if geo is None:
-                geo = GeometryEvidence(o.geometry_voxel_px, o.geometry_vote,
-                                       o.geometry_min_poses,
-                                       int(round(o.geometry_min_object * z0.size)))
+        if geo is not None and cam is not None and z0 is not None and z1 is not None:
             known = seen[0] & seen[1] if seen[0] is not None and seen[1] is not None else None
             differ = None
             if f0.get("rgb") is not None and f1.get("rgb") is not None:

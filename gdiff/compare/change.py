@@ -103,6 +103,13 @@ class CompareOptions:
     geometry_min_poses: ... and at this many poses at least.
     geometry_min_object: smallest changed object kept, as a fraction of the image area at the
         median depth.
+    flat: also mark surfaces that stay in place but whose appearance changed, voted in 3D the
+        same way (:func:`gdiff.compare.geometry.flat_flags`): flat objects (a sheet, a book, a
+        poster) put onto or taken off a surface that the segmenter merged with them. Only
+        when the light stayed the same: see ``flat_max_rate``.
+    flat_max_rate: when more than this share of the surfaces judged in 3D (seen from
+        ``geometry_min_poses`` poses) changed appearance, the change is taken to be one of
+        light (moved shadows, another sun) and the flat evidence is not used.
     """
 
     presence_iou: float = 0.3
@@ -127,6 +134,8 @@ class CompareOptions:
     geometry_vote: float = 0.5
     geometry_min_poses: int = 3
     geometry_min_object: float = 0.003
+    flat: bool = True
+    flat_max_rate: float = 0.05
 
     def __post_init__(self):
         if not 0 <= self.observed_min_parallax < 180:
@@ -139,6 +148,8 @@ class CompareOptions:
             raise ConfigError("config keys 'compare.evidence_open' (>= 0), "
                               "'compare.observed_depth_tol' (> 0) and "
                               "'compare.observed_min_views' (>= 1) are out of range")
+        if not 0 < self.flat_max_rate <= 1:
+            raise ConfigError("config key 'compare.flat_max_rate' must lie in (0, 1]")
         if self.geometry_voxel_px <= 0 or self.geometry_min_poses < 1 \
                 or not 0 <= self.geometry_min_object < 1:
             raise ConfigError("config keys 'compare.geometry_voxel_px' (> 0), "

@@ -124,15 +124,22 @@ class GeometryEvidence:
     def _keys(self, P: np.ndarray) -> np.ndarray:
         return _pack(np.floor(P / self.voxel)) if len(P) else np.zeros(0, np.int64)
 
-    def finish(self) -> dict:
-        """Decide the changed voxels; returns counts for the log."""
-        stats = {"voxel": None, "changed_voxels": 0, "objects": 0}
+    def finish(self, max_rate: float | None = None) -> dict:
+        """Decide the changed voxels; returns counts for the log.
+
+        ``max_rate`` (None: no limit): when the voxels that pass the vote are more than this
+        share of the voxels looked at from ``min_poses`` poses or more, at either time, the
+        evidence is taken to come from a change that touches the whole scene (a change of
+        light shows on every surface) and no voxel is changed (``stats["rate"]`` says why)."""
+        stats = {"voxel": None, "changed_voxels": 0, "objects": 0, "rate": 0.0,
+                 "rejected": False}
         if not self._scale:
             return stats
         self.voxel = stats["voxel"] = self.voxel_px * float(np.median(self._scale))
         h, w = next(iter(self._poses.values())).shape
         min_px = int(round(self.min_object * h * w))
         min_vox = max(2, int(np.ceil(min_px / self.voxel_px ** 2)))
+        voted = []
         for t in (0, 1):
             looks, flags = [], []
             for pose, L, F in zip(self._poses.values(), self._looks[t], self._flags[t]):
@@ -143,8 +150,14 @@ class GeometryEvidence:
             lk, ln = np.unique(np.concatenate(looks), return_counts=True)
             fk, fn = np.unique(np.concatenate(flags), return_counts=True)
             seen = ln[np.searchsorted(lk, fk)]  # every flag is a look too
-            self.changed[t], n = _objects(fk[(fn >= self.min_poses) & (fn >= self.vote * seen)],
-                                          min_vox)
+            voted.append(fk[(fn >= self.min_poses) & (fn >= self.vote * seen)])
+            judged = int((ln >= self.min_poses).sum())
+            stats["rate"] = max(stats["rate"], len(voted[t]) / max(judged, 1))
+        if max_rate is not None and stats["rate"] > max_rate:
+            stats["rejected"] = True
+            return stats
+        for t in (0, 1):
+            self.changed[t], n = _objects(voted[t], min_vox)
             stats["changed_voxels"] += len(self.changed[t])
             stats["objects"] += n
         return stats
@@ -218,3 +231,32 @@ def pose_flags(depth0: np.ndarray, depth1: np.ndarray, rel: float, open_frac: fl
     vanished = coherent(v0 & (d0 - d1 > rel) & differ, open_frac)
     appeared = coherent(v1 & (d1 - d0 > rel) & differ, open_frac)
     return vanished, appeared, v0, v1
+
+
+def flat_flags(depth0: np.ndarray, depth1: np.ndarray, rel: float, open_frac: float,
+               known: np.ndarray | None, looks_differ: np.ndarray
+               ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Per-pose input of a :class:`GeometryEvidence` for changes of appearance on a surface
+    that stays in place (a flat object put onto or taken off a surface; but also a moved
+    shadow, which :meth:`GeometryEvidence.finish` ``max_rate`` is there to reject).
+
+    Returns bool [H, W] ``(flagged, flagged, looked, looked)``: ``flagged`` are pixels with a
+    surface at both times whose inverse depth (relative to the pose's median depth, as in
+    :func:`pose_flags`) changed by at most ``rel`` and that ``looks_differ`` (bool [H, W],
+    :func:`~gdiff.compare.change.appearance_change`), inside blobs at least ``open_frac`` of
+    the image's longer side wide; ``looked`` are pixels with a surface at both times. The
+    surface is the same at both times, so it is flagged (and looked at) at both.
+    ``known`` (bool [H, W] or None) restricts both."""
+    z0 = np.asarray(depth0, np.float64)
+    z1 = np.asarray(depth1, np.float64)
+    v = np.isfinite(z0) & (z0 > 0) & np.isfinite(z1) & (z1 > 0)
+    if known is not None:
+        v &= known
+    if not v.any():
+        none = np.zeros(z0.shape, bool)
+        return none, none, v, v
+    zm = float(np.median(np.concatenate([z0[v], z1[v]])))
+    d0 = np.where(v, zm / np.where(v, z0, 1.0), 0.0)
+    d1 = np.where(v, zm / np.where(v, z1, 1.0), 0.0)
+    fl = coherent(v & (np.abs(d0 - d1) <= rel) & np.asarray(looks_differ, bool), open_frac)
+    return fl, fl, v, v

@@ -26,7 +26,7 @@ from ..io import read_ids, read_json, write_csv, write_mask
 from ..log import progress
 from .change import CompareOptions, appearance_change, change_masks, decide, pose_stats
 from .coverage import DepthView, observed
-from .geometry import GeometryEvidence, pose_flags
+from .geometry import GeometryEvidence, flat_flags, pose_flags
 
 log = logging.getLogger("gdiff.compare")
 
@@ -66,6 +66,8 @@ def compare_paths(ids: dict[Key, np.ndarray], frames: dict[Key, dict] | None,
     stats = []
     geo = (GeometryEvidence(o.geometry_voxel_px, o.geometry_vote, o.geometry_min_poses,
                             o.geometry_min_object) if o.geometry else None)
+    flat = (GeometryEvidence(o.geometry_voxel_px, o.geometry_vote, o.geometry_min_poses,
+                             o.geometry_min_object) if o.flat else None)
     for p, i in progress(poses, desc="compare"):
         f0, f1 = get((p, "t0", i)), get((p, "t1", i))
         cam = f0.get("camera")
@@ -89,6 +91,9 @@ def compare_paths(ids: dict[Key, np.ndarray], frames: dict[Key, dict] | None,
                 differ = appearance_change(f0["rgb"], f1["rgb"], o.chroma_tol, o.ncc_min)
             geo.add((p, i), z0, z1, cam, *pose_flags(z0, z1, o.depth_change_rel,
                                                      o.evidence_open, known, differ))
+            if flat is not None and differ is not None:
+                flat.add((p, i), z0, z1, cam, *flat_flags(z0, z1, o.depth_change_rel,
+                                                          o.evidence_open, known, differ))
     df = decide(stats, o)
     changed = df.loc[df["changed"], "id"].tolist()
     masks = {(p, i): change_masks(ids[(p, "t0", i)], ids[(p, "t1", i)], changed)
@@ -104,6 +109,22 @@ def compare_paths(ids: dict[Key, np.ndarray], frames: dict[Key, dict] | None,
         log.info("geometry: voxel %.4g scene units, %d changed voxels in %d objects; %d pixels "
                  "added to the ID masks over %d poses", g["voxel"] or 0, g["changed_voxels"],
                  g["objects"], added, len(masks))
+    if flat is not None:
+        g = flat.finish(max_rate=o.flat_max_rate)
+        added = 0
+        for (p, i), (m0, m1) in masks.items():
+            if (p, i) in flat:
+                g0, g1 = flat.masks((p, i))
+                added += int((g0 & ~m0).sum() + (g1 & ~m1).sum())
+                masks[(p, i)] = (m0 | g0, m1 | g1)
+        if g["rejected"]:
+            log.info("flat changes: appearance changed on %.1f %% of the surfaces judged (more "
+                     "than compare.flat_max_rate = %.1f %%): taken as a change of light, "
+                     "nothing marked", 100 * g["rate"], 100 * o.flat_max_rate)
+        else:
+            log.info("flat changes: appearance changed on %.1f %% of the surfaces judged; %d "
+                     "changed voxels in %d objects; %d pixels added over %d poses",
+                     100 * g["rate"], g["changed_voxels"], g["objects"], added, len(masks))
     log.info("compared %d poses: %d of %d IDs changed (%s)", len(poses), len(changed), len(df),
              ", ".join(f"{t}: {(df['type'] == t).sum()}" for t in ("added", "removed", "moved")))
     return masks, df

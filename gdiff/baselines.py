@@ -7,6 +7,10 @@ taking an :class:`gdiff.evaluate.EvalView` (eval before/after images, eval camer
   difference of the before and after images, Gaussian blur, Otsu threshold (OpenCV).
 * :func:`idcompare_method` — instance-ID comparison of the eval pair itself (segment + track
   the two images, compare IDs) without the Gaussian partition: ``gdiff.compare``.
+* :func:`evidence3d_method` — the compare stage's 3D change evidence alone (the voxels whose
+  surface appeared, vanished or, under the same light, changed appearance:
+  ``gdiff.compare.geometry``), seen from the eval camera through the fitted model's depth at
+  t=0 and t=1; no learning. It shows what the 3D evidence contributes to the partition.
 * :func:`partition_method` — the learned change map rendered by the partition model at the
   eval camera: ``gdiff.partition``.
 
@@ -187,6 +191,27 @@ def idcompare_method(detect: Callable | None = None, render: Renderer | None = N
 
 
 # -------------------------------------------------------------------------------- partition
+
+
+def evidence3d_method(evidence: Any, depth: Callable[[Any, float], np.ndarray]
+                      ) -> Callable[["EvalView"], Prediction]:
+    """The 3D change evidence at the eval camera: ``evidence`` is the compare stage's
+    ``change/evidence3d.npz`` (path) or its contents (:func:`gdiff.compare.geometry.read_evidence`);
+    ``depth(camera, t)`` renders the fitted model's z-depth [H, W]. A pixel is changed when its
+    surface at t=0 lies in a voxel changed at t=0, or at t=1 in one changed at t=1."""
+    from .compare.geometry import evidence_masks, read_evidence  # lazy: stage module
+
+    ev = read_evidence(evidence) if not isinstance(evidence, dict) else evidence
+
+    def method(view: "EvalView") -> Prediction:
+        if view.camera is None:
+            raise MethodNotApplicable(f"view {view.name} has no eval camera in cameras.json")
+        cam = view.camera_at_gt_size()
+        m0, m1 = evidence_masks(ev, cam, depth(cam, 0.0), depth(cam, 1.0))
+        return Prediction(m0 | m1)
+
+    method.__name__ = "evidence3d"
+    return method
 
 
 def partition_method(pmodel: Any, render_change_map: Callable | None = None,

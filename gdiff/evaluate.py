@@ -23,7 +23,7 @@ is an eval view (its stem, with or without extension) or a training image: a pat
 folder (``after/v00.png``) or a bare file name, taken from ``after/`` when it is there, else
 from ``before/``. Eval views with boxes get box scores beside their mask scores; a training
 image with boxes becomes a *box view* (named by its path without extension, e.g. ``after/v00``)
-where only ``partition`` is scored, its change map rendered at that image's camera from
+where only ``partition`` and ``evidence3d`` are scored, at that image's camera from
 ``poses/cameras.json`` (the other methods need an eval photo pair and are skipped, logged).
 Box scores (:func:`gdiff.metrics.gt_box_scores`): a box is found when at least
 ``object_found_fraction`` of its core (the centred ``box_core`` of its width and height) is
@@ -61,8 +61,8 @@ import cv2
 import numpy as np
 import pandas as pd
 
-from .baselines import (MethodNotApplicable, Prediction, as_prediction, idcompare_method,
-                        partition_method, pixel_diff_method)
+from .baselines import (MethodNotApplicable, Prediction, as_prediction, evidence3d_method,
+                        idcompare_method, partition_method, pixel_diff_method)
 from .cameras import Camera, image_root, load_cameras
 from .errors import ConfigError, SceneError
 from .io import (imread_upright, read_image, read_json, read_mask, write_csv, write_image,
@@ -73,7 +73,9 @@ from .metrics import aggregate, gt_box_scores, object_regions, object_scores, sc
 
 log = logging.getLogger("gdiff.evaluate")
 
-METHODS = ("pixel_diff", "idcompare", "partition")
+METHODS = ("pixel_diff", "idcompare", "evidence3d", "partition")
+# methods that need only the eval camera (and the fitted model), not an eval photo pair
+CAMERA_METHODS = ("evidence3d", "partition")
 METRIC_COLUMNS = ["scene", "view", "method", "P", "R", "F1", "IoU", "TP", "FP", "FN",
                   "box_P", "box_R", "box_F1", "box_AP", "box_TP", "box_FP", "box_FN", "seconds",
                   "obj_N", "obj_found", "obj_R", "gtbox_N", "gtbox_found", "gtbox_R", "far_FP",
@@ -85,7 +87,7 @@ class EvalOptions:
     """Options of the ``evaluate`` config section."""
 
     methods: list[str] = field(default_factory=lambda: list(METHODS))
-    """Methods to score side by side: any of pixel_diff, idcompare, partition."""
+    """Methods to score side by side: any of pixel_diff, idcompare, evidence3d, partition."""
     box_iou: float = 0.5
     """IoU a predicted box needs with a ground-truth box to count as a detection."""
     box_min_area: float = 0.0005
@@ -365,10 +367,13 @@ def _attach_boxes(root: Path, views: list[EvalView], box_gt: dict[str, np.ndarra
 
 def build_methods(options: EvalOptions, pmodel: Any = None, render: Callable | None = None,
                   detect: Callable | None = None, depth: Callable | None = None,
-                  **idcompare_kwargs) -> dict[str, Callable]:
+                  evidence: str | Path | None = None, **idcompare_kwargs
+                  ) -> dict[str, Callable]:
     """The methods named in ``options.methods``, ready for :func:`evaluate_scene`.
 
-    ``pmodel``: the trained partition model (needed for ``partition``); ``render(camera, t)``:
+    ``pmodel``: the trained partition model (needed for ``partition``); ``evidence``: the
+    compare stage's ``change/evidence3d.npz`` (``evidence3d`` needs it and ``depth``; without
+    them it is skipped); ``render(camera, t)``:
     optional renderer standing in for missing eval images; ``depth(camera, t)``: optional depth
     renderer giving ``idcompare`` the model's depth (``options.idcompare_depth``); ``detect``: override of
     ``gdiff.compare.detect_changes_pair`` for ``idcompare``; ``idcompare_kwargs`` (e.g.
@@ -383,6 +388,12 @@ def build_methods(options: EvalOptions, pmodel: Any = None, render: Callable | N
             out[name] = idcompare_method(detect=detect, render=render,
                                          depth=depth if options.idcompare_depth else None,
                                          **idcompare_kwargs)
+        elif name == "evidence3d":
+            if evidence is None or depth is None:
+                log.info("evidence3d skipped: it needs the compare stage's evidence3d.npz and "
+                         "the fitted model's depth")
+                continue
+            out[name] = evidence3d_method(evidence, depth)
         elif name == "partition":
             if pmodel is None:
                 raise ConfigError("evaluate.methods lists 'partition' but no partition model "
@@ -427,7 +438,8 @@ def model_depth(model: Any) -> Callable[[Camera, float], np.ndarray]:
 def evaluate_workflow_scene(scene_dir: str | Path, cameras_json: str | Path,
                             partition_model: str | Path, out_dir: str | Path, scene_name: str,
                             options: EvalOptions, segment_options: dict | None = None,
-                            device: str = "auto") -> pd.DataFrame:
+                            device: str = "auto", evidence: str | Path | None = None
+                            ) -> pd.DataFrame:
     """The ``evaluate`` rule: load the partition model (whose fitted 4D model also renders any
     eval image a dataset lacks) and score every method of ``options.methods`` side by side."""
     from .options import from_config
@@ -438,7 +450,8 @@ def evaluate_workflow_scene(scene_dir: str | Path, cameras_json: str | Path,
     seg = from_config(SegmentOptions, segment_options, "segment")
     render = model_renderer(pmodel.fit)
     methods = build_methods(options, pmodel=pmodel, render=render,
-                            depth=model_depth(pmodel.fit), segment_options=seg)
+                            depth=model_depth(pmodel.fit), evidence=evidence,
+                            segment_options=seg)
     df = evaluate_scene(scene_dir, cameras_json, out_dir, scene_name, methods, options)
     q = render_quality(find_eval_views(scene_dir, cameras_json), render)
     write_csv(Path(out_dir) / "fit_quality.csv", q)
@@ -492,7 +505,7 @@ def evaluate_scene(scene_dir: str | Path, cameras_json: str | Path | None, out_d
         margin = options.box_margin * (w / view.box_size[0] if view.box_size else 1.0)
         preds: dict[str, Prediction] = {}
         for name, fn in methods.items():
-            if gt is None and name != "partition":
+            if gt is None and name not in CAMERA_METHODS:
                 log.info("%s: %s skipped at %s (box ground truth on a training image: the method "
                          "needs an eval photo pair)", scene_name, name, view.name)
                 continue

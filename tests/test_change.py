@@ -693,7 +693,8 @@ def test_geometry_evidence_finds_an_object_merged_with_its_support():
     comparison sees no change; the depth voted in 3D over the poses finds the box, and only
     it: a blob of wrong depth that shows at one pose only (fit noise) is voted away, and a patch
     the fit put nearer at t0 at every pose but that renders the same at both times (a floater)
-    is not a change either."""
+    is not a change either. The shadow the box casts on the wall changes the wall's
+    appearance but not its depth, like a flat object; hugging the box, it is not marked."""
     from gdiff.cameras import Camera
 
     rng = np.random.default_rng(3)
@@ -707,6 +708,11 @@ def test_geometry_evidence_finds_an_object_merged_with_its_support():
         z0, z1 = _box_scene_depth(cam, False, floater=True), _box_scene_depth(cam, True)
         truth[i] = z1 < 4.5
         rgb0, rgb1 = _wall_rgb(cam, z0), _wall_rgb(cam, z1, truth[i])
+        x = cam.c2w[0, 3] + (np.arange(160) + 0.5 - 80.0) / 100.0 * 5.0
+        y = (np.arange(120) + 0.5 - 60.0) / 100.0 * 5.0
+        shadow = ((x[None, :] >= -0.4) & (x[None, :] <= 0.85) & (y[:, None] >= -0.4)
+                  & (y[:, None] <= 0.85) & ~truth[i])
+        rgb1[shadow] *= np.array([0.35, 0.4, 0.6], np.float32)  # bluish sky light
         if i == 4:  # a nearer, darker blob at t0 at this pose only, away from the box
             r, c = rng.integers(2, 8), rng.integers(2, 8)
             z0[r:r + 25, c:c + 25] *= 0.8
@@ -730,12 +736,14 @@ def test_geometry_evidence_finds_an_object_merged_with_its_support():
     assert sum(m0.sum() for m0, _ in no_rgb.values()) > 0
 
 
-def test_flat_object_merged_with_its_support_is_found_in_3d():
+def test_flat_object_merged_with_its_support_is_found_in_3d(tmp_path):
     """A poster hangs on the wall at t0 and is gone at t1; the segmenter gave it and the wall
     one ID at both times and its depth is the wall's. Its change of appearance, voted in 3D
     over the poses, finds it at both times (the same surface), and only it. A poster that
-    shows at one pose only (a fit artefact) is voted away."""
+    shows at one pose only (a fit artefact) is voted away. The changed voxels, written to
+    disk and read back, show the poster from a camera that is not one of the poses."""
     from gdiff.cameras import Camera
+    from gdiff.compare.geometry import evidence_masks, read_evidence, write_evidence
 
     cams = []
     for x in np.linspace(-1.0, 1.0, 9):
@@ -767,6 +775,19 @@ def test_flat_object_merged_with_its_support_is_found_in_3d():
             assert hit > 0.75 and not (m & ~near).any(), (i, hit)  # at most a blurred rim
     off, _ = compare_paths(ids, frames, CompareOptions(flat=False))
     assert not any(m0.any() or m1.any() for m0, m1 in off.values())
+    write_evidence(tmp_path / "evidence3d.npz", df.attrs["evidence3d"])
+    ev = read_evidence(tmp_path / "evidence3d.npz")
+    assert set(ev) == {"geometry", "flat"} and len(ev["flat"][1]) and not len(ev["geometry"][1])
+    c2w = np.eye(4)
+    c2w[0, 3] = 0.35  # between the poses
+    cam = Camera(160, 120, 100.0, 100.0, 80.0, 60.0, c2w)
+    z = _box_scene_depth(cam, False)
+    u = (np.arange(160) + 0.5 - 80.0) / 100.0
+    v = (np.arange(120) + 0.5 - 60.0) / 100.0
+    poster = (np.abs(0.35 + 5.0 * u[None, :] + 0.2) <= 0.5) & (np.abs(5.0 * v[:, None]) <= 0.4)
+    near = cv2.dilate(poster.astype(np.uint8), np.ones((13, 13), np.uint8)) > 0
+    for m in evidence_masks(ev, cam, z, z):
+        assert (m & poster).sum() > 0.75 * poster.sum() and not (m & ~near).any()
 
 
 def test_moving_light_with_no_object_change_gives_no_change():

@@ -74,7 +74,8 @@ def test_tiny_end_to_end_with_sigkill_and_local_cluster(tmp_path):
                 "fit/model.pt", "fit/gaussians_t0.ply", "fit/gaussians_t1.ply",
                 "fit/train_log.csv", "fit/quality.csv", "sequence/poses.json",
                 "render/frames.json", "render/p1/t0_sheet.png", "instances/index.json",
-                "change/keyframes.csv", "change/changes.csv", "partition/model.pt",
+                "change/keyframes.csv", "change/changes.csv", "change/evidence3d.npz",
+                "partition/model.pt",
                 "partition/changed.ply", "partition/unchanged.ply", "eval/metrics.csv"]:
         assert (res / rel).exists(), rel
     # the EXR frames are temporary: deleted once segment and compare have read them
@@ -82,8 +83,8 @@ def test_tiny_end_to_end_with_sigkill_and_local_cluster(tmp_path):
     log = pd.read_csv(res / "fit/train_log.csv")
     assert log["iteration"].max() == 360
     metrics = pd.read_csv(res / "eval/metrics.csv")
-    assert set(metrics["method"]) == {"pixel_diff", "idcompare", "partition"}
-    assert len(metrics) == 3 * 3  # 3 eval views x 3 methods
+    assert set(metrics["method"]) == {"pixel_diff", "idcompare", "evidence3d", "partition"}
+    assert len(metrics) == 3 * 4  # 3 eval views x 4 methods
     summary = pd.read_csv(work / "results/summary.csv")
     assert {"scene", "method"} <= set(summary.columns)
     timings = pd.read_csv(work / "results/timings.csv")

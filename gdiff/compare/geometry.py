@@ -39,6 +39,7 @@ import numpy as np
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 
+from ..io import atomic_path
 from ..track import world_points
 from .change import coherent
 
@@ -95,6 +96,8 @@ class GeometryEvidence:
         self._scale: list[float] = []                     # median z / f per pose
         self.voxel: float | None = None
         self.changed: list[np.ndarray] = [np.zeros(0, np.int64), np.zeros(0, np.int64)]
+        # per time: the component (0, 1, ...; numbered over both times) of each changed voxel
+        self.component: list[np.ndarray] = [np.zeros(0, np.int64), np.zeros(0, np.int64)]
 
     def __contains__(self, pose) -> bool:
         return pose in self._poses
@@ -157,28 +160,39 @@ class GeometryEvidence:
             stats["rejected"] = True
             return stats
         for t in (0, 1):
-            self.changed[t], n = _objects(voted[t], min_vox)
+            self.changed[t], lab, n = _objects(voted[t], min_vox)
+            self.component[t] = lab + stats["objects"]
             stats["changed_voxels"] += len(self.changed[t])
             stats["objects"] += n
         return stats
 
     def masks(self, pose) -> tuple[np.ndarray, np.ndarray]:
         """bool [H, W] change pixels of ``pose`` at t0 (vanished) and t1 (appeared)."""
+        l0, l1 = self.labels(pose)
+        return l0 >= 0, l1 >= 0
+
+    def labels(self, pose) -> tuple[np.ndarray, np.ndarray]:
+        """int [H, W] per time: the changed component each change pixel of ``pose`` belongs to
+        (numbered from 0 over both times), -1 elsewhere."""
         rec = self._poses[pose]
         out = []
         for t in (0, 1):
-            m = np.zeros(rec.shape[0] * rec.shape[1], bool)
+            m = np.full(rec.shape[0] * rec.shape[1], -1, np.int64)
             if len(self.changed[t]) and rec.keys[t] is not None and len(rec.keys[t]):
-                m[rec.idx[t][np.isin(rec.keys[t], self.changed[t])]] = True
+                j = np.minimum(np.searchsorted(self.changed[t], rec.keys[t]),
+                               len(self.changed[t]) - 1)
+                hit = self.changed[t][j] == rec.keys[t]
+                m[rec.idx[t][hit]] = self.component[t][j[hit]]
             out.append(m.reshape(rec.shape))
         return out[0], out[1]
 
 
-def _objects(keys: np.ndarray, min_vox: int) -> tuple[np.ndarray, int]:
-    """Keys of the voxels of the 26-connected components of ``keys`` (sorted, unique) that
-    hold at least ``min_vox`` voxels, and the number of those components."""
+def _objects(keys: np.ndarray, min_vox: int) -> tuple[np.ndarray, np.ndarray, int]:
+    """Keys (sorted) of the voxels of the 26-connected components of ``keys`` (sorted, unique)
+    that hold at least ``min_vox`` voxels, each voxel's component (0 .. n-1) and their number
+    n."""
     if len(keys) < min_vox:
-        return np.zeros(0, np.int64), 0
+        return np.zeros(0, np.int64), np.zeros(0, np.int64), 0
     v = _unpack(keys)
     rows, cols = [], []
     for d in _NEIGHBOURS:
@@ -191,7 +205,8 @@ def _objects(keys: np.ndarray, min_vox: int) -> tuple[np.ndarray, int]:
     graph = coo_matrix((np.ones(len(r), np.int8), (r, c)), shape=(len(keys), len(keys)))
     n, lab = connected_components(graph, directed=False)
     keep = np.bincount(lab, minlength=n) >= min_vox
-    return keys[keep[lab]], int(keep.sum())
+    renum = np.cumsum(keep) - 1
+    return keys[keep[lab]], renum[lab[keep[lab]]], int(keep.sum())
 
 
 def pose_flags(depth0: np.ndarray, depth1: np.ndarray, rel: float, open_frac: float,
@@ -260,3 +275,58 @@ def flat_flags(depth0: np.ndarray, depth1: np.ndarray, rel: float, open_frac: fl
     d1 = np.where(v, zm / np.where(v, z1, 1.0), 0.0)
     fl = coherent(v & (np.abs(d0 - d1) <= rel) & np.asarray(looks_differ, bool), open_frac)
     return fl, fl, v, v
+
+
+# ------------------------------------------------------------------------------------------
+# the changed voxels on disk (change/evidence3d.npz) and seen from any camera
+# ------------------------------------------------------------------------------------------
+
+EVIDENCE_KINDS = ("geometry", "flat")
+
+
+def write_evidence(path, evidence: dict[str, tuple[float | None, np.ndarray, np.ndarray]]
+                   ) -> None:
+    """Write the changed voxels of each kind of 3D evidence, atomically, as ``.npz``:
+    ``{kind}_voxel`` (voxel side, world units; NaN when the kind found nothing to decide on),
+    ``{kind}_t0`` / ``{kind}_t1`` (int64 packed voxel keys of the surfaces that vanished /
+    appeared, or for ``flat`` the surface whose appearance changed, at each time).
+    ``evidence[kind] = (voxel, keys_t0, keys_t1)``."""
+    arrays = {}
+    for kind, (voxel, k0, k1) in evidence.items():
+        arrays[f"{kind}_voxel"] = np.float64(np.nan if voxel is None else voxel)
+        arrays[f"{kind}_t0"] = np.asarray(k0, np.int64)
+        arrays[f"{kind}_t1"] = np.asarray(k1, np.int64)
+    with atomic_path(path, suffix=".npz") as tmp:
+        np.savez_compressed(tmp, **arrays)
+
+
+def read_evidence(path) -> dict[str, tuple[float | None, np.ndarray, np.ndarray]]:
+    """The changed voxels written by :func:`write_evidence`."""
+    with np.load(path) as z:
+        out = {}
+        for kind in EVIDENCE_KINDS:
+            if f"{kind}_voxel" in z:
+                v = float(z[f"{kind}_voxel"])
+                out[kind] = (None if not np.isfinite(v) else v, z[f"{kind}_t0"],
+                             z[f"{kind}_t1"])
+        return out
+
+
+def evidence_masks(evidence: dict[str, tuple[float | None, np.ndarray, np.ndarray]],
+                   camera, depth0: np.ndarray, depth1: np.ndarray
+                   ) -> tuple[np.ndarray, np.ndarray]:
+    """bool [H, W] at t0 and t1: pixels of ``camera`` (any camera; camera-to-world ``c2w``)
+    whose surface at that time (z-depth [H, W] rendered from the fitted model at t0 / t1)
+    lies in a changed voxel of that time."""
+    out = []
+    for t, z in enumerate((depth0, depth1)):
+        P = world_points(z, camera).reshape(-1, 3)
+        ok = np.isfinite(P).all(-1)  # world_points: NaN where there is no depth
+        m = np.zeros(len(P), bool)
+        for voxel, *keys in evidence.values():
+            if voxel is None or not len(keys[t]):
+                continue
+            k = _pack(np.floor(P[ok] / voxel))
+            m[np.flatnonzero(ok)[np.isin(k, keys[t])]] = True
+        out.append(m.reshape(np.asarray(z).shape))
+    return out[0], out[1]

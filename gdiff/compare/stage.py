@@ -7,7 +7,8 @@ per-ID decision: :mod:`gdiff.compare.change`; which pixels the photos of each ti
 
 Files (results/<scene>/): reads ``instances/index.json`` (the ID maps and, through it, the
 rendered EXR frames) and ``sequence/poses.json`` (:mod:`gdiff.frames`); writes
-``change/<path>/<t0|t1|union>/NNNNN.png`` (255 = changed), ``change/changes.csv`` and, last,
+``change/<path>/<t0|t1|union>/NNNNN.png`` (255 = changed), ``change/changes.csv``,
+``change/evidence3d.npz`` (the changed voxels of the 3D evidence) and, last,
 ``change/keyframes.csv``.
 """
 
@@ -17,6 +18,7 @@ import logging
 import os
 from pathlib import Path
 
+import cv2
 import numpy as np
 import pandas as pd
 
@@ -26,7 +28,7 @@ from ..io import read_ids, read_json, write_csv, write_mask
 from ..log import progress
 from .change import CompareOptions, appearance_change, change_masks, decide, pose_stats
 from .coverage import DepthView, observed
-from .geometry import GeometryEvidence, flat_flags, pose_flags
+from .geometry import GeometryEvidence, flat_flags, pose_flags, write_evidence
 
 log = logging.getLogger("gdiff.compare")
 
@@ -57,7 +59,9 @@ def compare_paths(ids: dict[Key, np.ndarray], frames: dict[Key, dict] | None,
     ``{(path, i): time}`` of the path frames that are training cameras (key frames) of that
     time; with them only pixels a training photo of each time saw are compared
     (:mod:`gdiff.compare.coverage`). Returns ({(path, i): (mask_t0, mask_t1)}, changes table: id,
-    changed, type, partner, n_t0, n_t1, n_confirmed, first, last, area, instance).
+    changed, type, partner, n_t0, n_t1, n_confirmed, first, last, area, instance). The table's
+    ``attrs["evidence3d"]`` holds the changed voxels of the 3D evidence, ``{"geometry" | "flat":
+    (voxel side, keys at t0, keys at t1)}`` (see :func:`gdiff.compare.geometry.write_evidence`).
     """
     o = options or CompareOptions()
     get = frames if callable(frames) else (lambda k: (frames or {}).get(k, {}))
@@ -98,8 +102,10 @@ def compare_paths(ids: dict[Key, np.ndarray], frames: dict[Key, dict] | None,
     changed = df.loc[df["changed"], "id"].tolist()
     masks = {(p, i): change_masks(ids[(p, "t0", i)], ids[(p, "t1", i)], changed)
              for p, i in poses}
+    evidence = {}
     if geo is not None:
         g = geo.finish()
+        evidence["geometry"] = (geo.voxel, geo.changed[0], geo.changed[1])
         added = 0
         for (p, i), (m0, m1) in masks.items():
             if (p, i) in geo:
@@ -111,10 +117,14 @@ def compare_paths(ids: dict[Key, np.ndarray], frames: dict[Key, dict] | None,
                  g["objects"], added, len(masks))
     if flat is not None:
         g = flat.finish(max_rate=o.flat_max_rate)
+        rims = _rims(flat, masks, g["objects"], max(1, int(round(2 * o.geometry_voxel_px))))
+        evidence["flat"] = (flat.voxel, *(k[~np.isin(c, rims)]
+                                          for k, c in zip(flat.changed, flat.component)))
         added = 0
         for (p, i), (m0, m1) in masks.items():
             if (p, i) in flat:
-                g0, g1 = flat.masks((p, i))
+                g0, g1 = (np.isin(lab, rims, invert=True) & (lab >= 0)
+                          for lab in flat.labels((p, i)))
                 added += int((g0 & ~m0).sum() + (g1 & ~m1).sum())
                 masks[(p, i)] = (m0 | g0, m1 | g1)
         if g["rejected"]:
@@ -123,11 +133,38 @@ def compare_paths(ids: dict[Key, np.ndarray], frames: dict[Key, dict] | None,
                      "nothing marked", 100 * g["rate"], 100 * o.flat_max_rate)
         else:
             log.info("flat changes: appearance changed on %.1f %% of the surfaces judged; %d "
-                     "changed voxels in %d objects; %d pixels added over %d poses",
-                     100 * g["rate"], g["changed_voxels"], g["objects"], added, len(masks))
+                     "changed voxels in %d objects, %d of them the rims or shadows of other "
+                     "changes (left out); %d pixels added over %d poses", 100 * g["rate"],
+                     g["changed_voxels"], g["objects"], len(rims), added, len(masks))
     log.info("compared %d poses: %d of %d IDs changed (%s)", len(poses), len(changed), len(df),
              ", ".join(f"{t}: {(df['type'] == t).sum()}" for t in ("added", "removed", "moved")))
+    df.attrs["evidence3d"] = evidence
     return masks, df
+
+
+def _rims(flat: GeometryEvidence, masks, n: int, band: int) -> np.ndarray:
+    """Components of the flat evidence that are the rims or shadows of other changes: at the
+    poses that show them, at least 3/4 of the pixels they would add to ``masks`` (the ID
+    comparison's and the geometry's changes) lie within ``band`` pixels of those changes. A
+    changed object darkens the surface it stands on and blurs into it at its outline; those
+    pixels keep their depth and change appearance, like a flat object, but hug the object. A
+    flat object the ID comparison found in part reaches farther beyond that part and is
+    kept."""
+    if n == 0:
+        return np.zeros(0, np.int64)
+    new = np.zeros(n, np.int64)
+    near = np.zeros(n, np.int64)
+    kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * band + 1, 2 * band + 1))
+    for pose, (m0, m1) in masks.items():
+        if pose not in flat:
+            continue
+        other = m0 | m1
+        ring = (cv2.dilate(other.astype(np.uint8), kernel) > 0) & ~other
+        for lab in flat.labels(pose):
+            sel = (lab >= 0) & ~other
+            new += np.bincount(lab[sel], minlength=n)
+            near += np.bincount(lab[sel & ring], minlength=n)
+    return np.flatnonzero(near >= 0.75 * np.maximum(new, 1))
 
 
 def compare(instances_dir, poses_json, out_dir, options: CompareOptions | None = None) -> dict:
@@ -179,6 +216,7 @@ def compare(instances_dir, poses_json, out_dir, options: CompareOptions | None =
             rows.append(dict(path=p, frame=i, image=fr.get("image", ""), set=fr.get("set") or "",
                              time=keys[(p, i)], mask_t0=rel["t0"], mask_t1=rel["t1"],
                              mask_union=rel["union"]))
+    write_evidence(out_dir / "evidence3d.npz", df.attrs.get("evidence3d", {}))
     write_csv(out_dir / "changes.csv", df[df["changed"]].drop(columns=["changed"]))
     write_csv(out_dir / "keyframes.csv", pd.DataFrame(rows, columns=[
         "path", "frame", "image", "set", "time", "mask_t0", "mask_t1", "mask_union"]))

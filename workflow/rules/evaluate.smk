@@ -7,6 +7,7 @@ rule evaluate:
         manifest=res("{scene}", "input", "manifest.json"),
         cameras=res("{scene}", "poses", "cameras.json"),
         partition=res("{scene}", "partition", "model.pt"),
+        evidence=res("{scene}", "change", "evidence3d.npz"),
     output:
         metrics=report(
             res("{scene}", "eval", "metrics.csv"),

@@ -11,4 +11,5 @@ run_stage(snakemake, lambda: evaluate_workflow_scene(
     partition_model=snakemake.input.partition, out_dir=Path(snakemake.output.metrics).parent,
     scene_name=snakemake.wildcards.scene,
     options=from_config(EvalOptions, snakemake.params.options, "evaluate"),
-    segment_options=snakemake.params.segment, device=snakemake.params.device))
+    segment_options=snakemake.params.segment, device=snakemake.params.device,
+    evidence=snakemake.input.evidence))

@@ -673,6 +673,15 @@ def _box_scene_depth(camera, box: bool, floater: bool = False) -> np.ndarray:
     return z
 
 
+def _wall_camera(x: float):
+    """A 160 x 120 camera (f = 100 px) at world (x, 0, 0) looking along +z at the wall."""
+    from gdiff.cameras import Camera
+
+    c2w = np.eye(4)
+    c2w[0, 3] = x
+    return Camera(160, 120, 100.0, 100.0, 80.0, 60.0, c2w)
+
+
 def _wall_rgb(camera, z: np.ndarray, box: np.ndarray | None = None) -> np.ndarray:
     """sRGB [H, W, 3]: a wall textured by its world x, y (so it renders the same at both
     times, wherever its depth was fitted), and a red ``box`` (bool [H, W])."""
@@ -695,14 +704,8 @@ def test_geometry_evidence_finds_an_object_merged_with_its_support():
     the fit put nearer at t0 at every pose but that renders the same at both times (a floater)
     is not a change either. The shadow the box casts on the wall changes the wall's
     appearance but not its depth, like a flat object; hugging the box, it is not marked."""
-    from gdiff.cameras import Camera
-
     rng = np.random.default_rng(3)
-    cams = []
-    for x in np.linspace(-1.0, 1.0, 9):
-        c2w = np.eye(4)
-        c2w[0, 3] = x
-        cams.append(Camera(160, 120, 100.0, 100.0, 80.0, 60.0, c2w))
+    cams = [_wall_camera(x) for x in np.linspace(-1.0, 1.0, 9)]
     ids, frames, truth = {}, {}, {}
     for i, cam in enumerate(cams):
         z0, z1 = _box_scene_depth(cam, False, floater=True), _box_scene_depth(cam, True)
@@ -742,14 +745,9 @@ def test_flat_object_merged_with_its_support_is_found_in_3d(tmp_path):
     over the poses, finds it at both times (the same surface), and only it. A poster that
     shows at one pose only (a fit artefact) is voted away. The changed voxels, written to
     disk and read back, show the poster from a camera that is not one of the poses."""
-    from gdiff.cameras import Camera
     from gdiff.compare.geometry import evidence_masks, read_evidence, write_evidence
 
-    cams = []
-    for x in np.linspace(-1.0, 1.0, 9):
-        c2w = np.eye(4)
-        c2w[0, 3] = x
-        cams.append(Camera(160, 120, 100.0, 100.0, 80.0, 60.0, c2w))
+    cams = [_wall_camera(x) for x in np.linspace(-1.0, 1.0, 9)]
     ids, frames, truth = {}, {}, {}
     for i, cam in enumerate(cams):
         z = _box_scene_depth(cam, False)
@@ -778,9 +776,7 @@ def test_flat_object_merged_with_its_support_is_found_in_3d(tmp_path):
     write_evidence(tmp_path / "evidence3d.npz", df.attrs["evidence3d"])
     ev = read_evidence(tmp_path / "evidence3d.npz")
     assert set(ev) == {"geometry", "flat"} and len(ev["flat"][1]) and not len(ev["geometry"][1])
-    c2w = np.eye(4)
-    c2w[0, 3] = 0.35  # between the poses
-    cam = Camera(160, 120, 100.0, 100.0, 80.0, 60.0, c2w)
+    cam = _wall_camera(0.35)  # between the poses
     z = _box_scene_depth(cam, False)
     u = (np.arange(160) + 0.5 - 80.0) / 100.0
     v = (np.arange(120) + 0.5 - 60.0) / 100.0

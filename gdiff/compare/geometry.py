@@ -33,12 +33,14 @@ centres at +0.5), as rendered into the EXR ``Z`` channel.
 from __future__ import annotations
 
 import logging
+import zipfile
 from dataclasses import dataclass, field
 
 import numpy as np
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 
+from ..errors import SceneError
 from ..io import atomic_path
 from ..track import world_points
 from .change import coherent
@@ -103,16 +105,20 @@ class GeometryEvidence:
         return pose in self._poses
 
     def add(self, pose, depth0: np.ndarray, depth1: np.ndarray, camera, flagged0: np.ndarray,
-            flagged1: np.ndarray, looked0: np.ndarray, looked1: np.ndarray) -> None:
+            flagged1: np.ndarray, looked0: np.ndarray, looked1: np.ndarray,
+            points: tuple[np.ndarray, np.ndarray] | None = None) -> None:
         """One pose: z-depth [H, W] at t0 and t1, its camera (camera-to-world ``c2w``,
         intrinsics) and the bool [H, W] masks of :func:`pose_flags`: ``flagged0`` vanished
         (t0) and ``flagged1`` appeared (t1) surfaces, ``looked{t}`` pixels whose surface at
-        time t counts as a look."""
+        time t counts as a look. ``points``: the world points [H, W, 3] of the two depths
+        (:func:`gdiff.track.world_points`) when the caller has them already."""
         rec = _Pose(tuple(depth0.shape))
         sub = np.zeros(depth0.shape, bool)
         sub[::self.stride, ::self.stride] = True
+        if points is None:
+            points = (world_points(depth0, camera), world_points(depth1, camera))
         for t, (z, fl, lk) in enumerate(((depth0, flagged0, looked0), (depth1, flagged1, looked1))):
-            P = world_points(z, camera).reshape(-1, 3)
+            P = points[t].reshape(-1, 3)
             ok = np.isfinite(P).all(-1)
             fl = np.asarray(fl, bool).ravel() & ok
             lk = (np.asarray(lk, bool).ravel() & sub.ravel() & ok) | fl
@@ -209,6 +215,29 @@ def _objects(keys: np.ndarray, min_vox: int) -> tuple[np.ndarray, np.ndarray, in
     return keys[keep[lab]], renum[lab[keep[lab]]], int(keep.sum())
 
 
+def _surfaces(depth0: np.ndarray, depth1: np.ndarray, known: np.ndarray | None
+              ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """float64 z-depths [H, W] at t0 and t1 and bool [H, W] where each has a surface (finite,
+    positive depth), restricted to ``known`` when given."""
+    z0 = np.asarray(depth0, np.float64)
+    z1 = np.asarray(depth1, np.float64)
+    v0 = np.isfinite(z0) & (z0 > 0)
+    v1 = np.isfinite(z1) & (z1 > 0)
+    if known is not None:
+        v0, v1 = v0 & known, v1 & known
+    return z0, z1, v0, v1
+
+
+def _relative_inverse_depth(z0: np.ndarray, z1: np.ndarray, v0: np.ndarray, v1: np.ndarray
+                            ) -> tuple[np.ndarray, np.ndarray]:
+    """Inverse depth times the pose's median depth (over ``z0[v0]`` and ``z1[v1]``) [H, W] at
+    each time; 0 where there is no surface. A difference of ``rel`` is a relative depth change
+    of ``rel`` at the median depth."""
+    zm = float(np.median(np.concatenate([z0[v0], z1[v1]])))
+    return (np.where(v0, zm / np.where(v0, z0, 1.0), 0.0),
+            np.where(v1, zm / np.where(v1, z1, 1.0), 0.0))
+
+
 def pose_flags(depth0: np.ndarray, depth1: np.ndarray, rel: float, open_frac: float,
                known: np.ndarray | None = None, looks_differ: np.ndarray | None = None
                ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
@@ -230,18 +259,11 @@ def pose_flags(depth0: np.ndarray, depth1: np.ndarray, rel: float, open_frac: fl
     ``known`` (bool [H, W], observed by photos of both times, :mod:`gdiff.compare.coverage`)
     restricts all four.
     """
-    z0 = np.asarray(depth0, np.float64)
-    z1 = np.asarray(depth1, np.float64)
-    v0 = np.isfinite(z0) & (z0 > 0)
-    v1 = np.isfinite(z1) & (z1 > 0)
-    if known is not None:
-        v0, v1 = v0 & known, v1 & known
+    z0, z1, v0, v1 = _surfaces(depth0, depth1, known)
     if not (v0.any() and v1.any()):
         none = np.zeros(z0.shape, bool)
         return none, none, v0, v1
-    zm = float(np.median(np.concatenate([z0[v0], z1[v1]])))
-    d0 = np.where(v0, zm / np.where(v0, z0, 1.0), 0.0)  # inverse depth x median depth
-    d1 = np.where(v1, zm / np.where(v1, z1, 1.0), 0.0)
+    d0, d1 = _relative_inverse_depth(z0, z1, v0, v1)
     differ = np.ones(z0.shape, bool) if looks_differ is None else np.asarray(looks_differ, bool)
     vanished = coherent(v0 & (d0 - d1 > rel) & differ, open_frac)
     appeared = coherent(v1 & (d1 - d0 > rel) & differ, open_frac)
@@ -262,17 +284,12 @@ def flat_flags(depth0: np.ndarray, depth1: np.ndarray, rel: float, open_frac: fl
     the image's longer side wide; ``looked`` are pixels with a surface at both times. The
     surface is the same at both times, so it is flagged (and looked at) at both.
     ``known`` (bool [H, W] or None) restricts both."""
-    z0 = np.asarray(depth0, np.float64)
-    z1 = np.asarray(depth1, np.float64)
-    v = np.isfinite(z0) & (z0 > 0) & np.isfinite(z1) & (z1 > 0)
-    if known is not None:
-        v &= known
+    z0, z1, v0, v1 = _surfaces(depth0, depth1, known)
+    v = v0 & v1
     if not v.any():
         none = np.zeros(z0.shape, bool)
         return none, none, v, v
-    zm = float(np.median(np.concatenate([z0[v], z1[v]])))
-    d0 = np.where(v, zm / np.where(v, z0, 1.0), 0.0)
-    d1 = np.where(v, zm / np.where(v, z1, 1.0), 0.0)
+    d0, d1 = _relative_inverse_depth(z0, z1, v, v)
     fl = coherent(v & (np.abs(d0 - d1) <= rel) & np.asarray(looks_differ, bool), open_frac)
     return fl, fl, v, v
 
@@ -301,15 +318,20 @@ def write_evidence(path, evidence: dict[str, tuple[float | None, np.ndarray, np.
 
 
 def read_evidence(path) -> dict[str, tuple[float | None, np.ndarray, np.ndarray]]:
-    """The changed voxels written by :func:`write_evidence`."""
-    with np.load(path) as z:
-        out = {}
-        for kind in EVIDENCE_KINDS:
-            if f"{kind}_voxel" in z:
-                v = float(z[f"{kind}_voxel"])
-                out[kind] = (None if not np.isfinite(v) else v, z[f"{kind}_t0"],
-                             z[f"{kind}_t1"])
-        return out
+    """The changed voxels written by :func:`write_evidence`; a missing or unreadable file is a
+    :class:`~gdiff.errors.SceneError` naming it."""
+    try:
+        with np.load(path) as z:
+            out = {}
+            for kind in EVIDENCE_KINDS:
+                if f"{kind}_voxel" in z:
+                    v = float(z[f"{kind}_voxel"])
+                    out[kind] = (None if not np.isfinite(v) else v, z[f"{kind}_t0"],
+                                 z[f"{kind}_t1"])
+            return out
+    except (OSError, ValueError, KeyError, zipfile.BadZipFile) as e:
+        raise SceneError(f"{path}: not a readable 3D evidence file ({e}); re-run the compare "
+                         "rule (snakemake --forcerun compare)") from e
 
 
 def evidence_masks(evidence: dict[str, tuple[float | None, np.ndarray, np.ndarray]],
@@ -323,10 +345,12 @@ def evidence_masks(evidence: dict[str, tuple[float | None, np.ndarray, np.ndarra
         P = world_points(z, camera).reshape(-1, 3)
         ok = np.isfinite(P).all(-1)  # world_points: NaN where there is no depth
         m = np.zeros(len(P), bool)
+        at = {}  # the pixels' voxel keys per voxel size (the kinds share one)
         for voxel, *keys in evidence.values():
             if voxel is None or not len(keys[t]):
                 continue
-            k = _pack(np.floor(P[ok] / voxel))
-            m[np.flatnonzero(ok)[np.isin(k, keys[t])]] = True
+            if voxel not in at:
+                at[voxel] = _pack(np.floor(P[ok] / voxel))
+            m[np.flatnonzero(ok)[np.isin(at[voxel], keys[t])]] = True
         out.append(m.reshape(np.asarray(z).shape))
     return out[0], out[1]

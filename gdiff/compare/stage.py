@@ -26,6 +26,7 @@ from ..errors import SceneError
 from ..frames import TIMES, Key, key_frames, read_frame, read_sequence
 from ..io import read_ids, read_json, write_csv, write_mask
 from ..log import progress
+from ..track import world_points
 from .change import CompareOptions, appearance_change, change_masks, decide, pose_stats
 from .coverage import DepthView, observed
 from .geometry import GeometryEvidence, flat_flags, pose_flags, write_evidence
@@ -93,11 +94,15 @@ def compare_paths(ids: dict[Key, np.ndarray], frames: dict[Key, dict] | None,
             differ = None
             if f0.get("rgb") is not None and f1.get("rgb") is not None:
                 differ = appearance_change(f0["rgb"], f1["rgb"], o.chroma_tol, o.ncc_min)
-            geo.add((p, i), z0, z1, cam, *pose_flags(z0, z1, o.depth_change_rel,
-                                                     o.evidence_open, known, differ))
+            points = (world_points(z0, cam), world_points(z1, cam))
+            if geo is not None:
+                geo.add((p, i), z0, z1, cam, *pose_flags(z0, z1, o.depth_change_rel,
+                                                         o.evidence_open, known, differ),
+                        points=points)
             if flat is not None and differ is not None:
                 flat.add((p, i), z0, z1, cam, *flat_flags(z0, z1, o.depth_change_rel,
-                                                          o.evidence_open, known, differ))
+                                                          o.evidence_open, known, differ),
+                         points=points)
     df = decide(stats, o)
     changed = df.loc[df["changed"], "id"].tolist()
     masks = {(p, i): change_masks(ids[(p, "t0", i)], ids[(p, "t1", i)], changed)
@@ -106,12 +111,7 @@ def compare_paths(ids: dict[Key, np.ndarray], frames: dict[Key, dict] | None,
     if geo is not None:
         g = geo.finish()
         evidence["geometry"] = (geo.voxel, geo.changed[0], geo.changed[1])
-        added = 0
-        for (p, i), (m0, m1) in masks.items():
-            if (p, i) in geo:
-                g0, g1 = geo.masks((p, i))
-                added += int((g0 & ~m0).sum() + (g1 & ~m1).sum())
-                masks[(p, i)] = (m0 | g0, m1 | g1)
+        added = _add_evidence(masks, geo)
         log.info("geometry: voxel %.4g scene units, %d changed voxels in %d objects; %d pixels "
                  "added to the ID masks over %d poses", g["voxel"] or 0, g["changed_voxels"],
                  g["objects"], added, len(masks))
@@ -120,13 +120,7 @@ def compare_paths(ids: dict[Key, np.ndarray], frames: dict[Key, dict] | None,
         rims = _rims(flat, masks, g["objects"], max(1, int(round(2 * o.geometry_voxel_px))))
         evidence["flat"] = (flat.voxel, *(k[~np.isin(c, rims)]
                                           for k, c in zip(flat.changed, flat.component)))
-        added = 0
-        for (p, i), (m0, m1) in masks.items():
-            if (p, i) in flat:
-                g0, g1 = (np.isin(lab, rims, invert=True) & (lab >= 0)
-                          for lab in flat.labels((p, i)))
-                added += int((g0 & ~m0).sum() + (g1 & ~m1).sum())
-                masks[(p, i)] = (m0 | g0, m1 | g1)
+        added = _add_evidence(masks, flat, leave_out=rims)
         if g["rejected"]:
             log.info("flat changes: appearance changed on %.1f %% of the surfaces judged (more "
                      "than compare.flat_max_rate = %.1f %%): taken as a change of light, "
@@ -140,6 +134,20 @@ def compare_paths(ids: dict[Key, np.ndarray], frames: dict[Key, dict] | None,
              ", ".join(f"{t}: {(df['type'] == t).sum()}" for t in ("added", "removed", "moved")))
     df.attrs["evidence3d"] = evidence
     return masks, df
+
+
+def _add_evidence(masks, ev: GeometryEvidence, leave_out: np.ndarray | None = None) -> int:
+    """OR the change pixels of ``ev`` into ``masks`` (in place), except those of the components
+    ``leave_out``; returns the number of pixels added."""
+    added = 0
+    for pose, (m0, m1) in masks.items():
+        if pose not in ev:
+            continue
+        g0, g1 = ((lab >= 0) & ~np.isin(lab, leave_out) if leave_out is not None else lab >= 0
+                  for lab in ev.labels(pose))
+        added += int((g0 & ~m0).sum() + (g1 & ~m1).sum())
+        masks[pose] = (m0 | g0, m1 | g1)
+    return added
 
 
 def _rims(flat: GeometryEvidence, masks, n: int, band: int) -> np.ndarray:

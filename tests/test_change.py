@@ -11,6 +11,7 @@ import pytest
 from gdiff import synth
 from gdiff.compare import (CompareOptions, change_masks, compare, compare_paths, decide,
                            detect_changes_pair, pose_stats)
+from gdiff.errors import SceneError
 from gdiff.io import read_ids, read_image, read_mask, srgb_to_linear
 from gdiff.segment import SegmentOptions, make_segmenter, segment_and_track, track_paths
 from gdiff.track import TrackOptions, world_points
@@ -730,7 +731,7 @@ def test_geometry_evidence_finds_an_object_merged_with_its_support():
         assert not m0.any(), i  # neither the one-pose blob nor the floater is a change
         hit = (m1 & truth[i]).sum() / truth[i].sum()
         assert hit > 0.75 and (m1 & ~truth[i]).sum() <= 0.05 * truth[i].sum(), (i, hit)
-    off, _ = compare_paths(ids, frames, dataclasses.replace(CompareOptions(), geometry=False))
+    off, _ = compare_paths(ids, frames, CompareOptions(geometry=False, flat=False))
     assert not any(m0.any() or m1.any() for m0, m1 in off.values())
     # without the appearance test the floater would count: it is there at every pose
     for f in frames.values():
@@ -773,6 +774,8 @@ def test_flat_object_merged_with_its_support_is_found_in_3d(tmp_path):
             assert hit > 0.75 and not (m & ~near).any(), (i, hit)  # at most a blurred rim
     off, _ = compare_paths(ids, frames, CompareOptions(flat=False))
     assert not any(m0.any() or m1.any() for m0, m1 in off.values())
+    alone, _ = compare_paths(ids, frames, CompareOptions(geometry=False))  # needs no geometry
+    assert all(np.array_equal(alone[k][t], masks[k][t]) for k in masks for t in (0, 1))
     write_evidence(tmp_path / "evidence3d.npz", df.attrs["evidence3d"])
     ev = read_evidence(tmp_path / "evidence3d.npz")
     assert set(ev) == {"geometry", "flat"} and len(ev["flat"][1]) and not len(ev["geometry"][1])
@@ -784,6 +787,9 @@ def test_flat_object_merged_with_its_support_is_found_in_3d(tmp_path):
     near = cv2.dilate(poster.astype(np.uint8), np.ones((13, 13), np.uint8)) > 0
     for m in evidence_masks(ev, cam, z, z):
         assert (m & poster).sum() > 0.75 * poster.sum() and not (m & ~near).any()
+    (tmp_path / "broken.npz").write_bytes(b"not a zip")
+    with pytest.raises(SceneError, match="broken.npz.*compare"):
+        read_evidence(tmp_path / "broken.npz")
 
 
 def test_moving_light_with_no_object_change_gives_no_change():

@@ -89,7 +89,8 @@ def compare_paths(ids: dict[Key, np.ndarray], frames: dict[Key, dict] | None,
             f0.get("depth"), f1.get("depth"), focal=cam.fx if cam is not None else None,
             camera=cam, observed0=seen[0], observed1=seen[1])))
         z0, z1 = f0.get("depth"), f1.get("depth")
-        if geo is not None and cam is not None and z0 is not None and z1 is not None:
+        have_depth = cam is not None and z0 is not None and z1 is not None
+        if have_depth and (geo is not None or flat is not None):
             known = seen[0] & seen[1] if seen[0] is not None and seen[1] is not None else None
             differ = None
             if f0.get("rgb") is not None and f1.get("rgb") is not None:

@@ -110,6 +110,15 @@ class CompareOptions:
     flat_max_rate: when more than this share of the surfaces judged in 3D (seen from
         ``geometry_min_poses`` poses) changed appearance, the change is taken to be one of
         light (moved shadows, another sun) and the flat evidence is not used.
+    light_change_support: under such a change of light, a changed object of the ID comparison
+        is kept only when at least this share of its pixels lie within two voxels of the
+        geometry evidence (its shape changed in 3D) ...
+    light_change_colour: ... or its colour relative to its surroundings changed by at least
+        this (``colour`` of the changes table, :func:`surround_colour_change`;
+        :func:`gdiff.compare.stage._confirm_under_new_light`). ``light_change_support`` 0
+        keeps them all.
+    surround_width: width of the ring around a region whose mean colour stands for the local
+        light in :func:`surround_colour_change`, as a fraction of the image's longer side.
     """
 
     presence_iou: float = 0.3
@@ -136,6 +145,9 @@ class CompareOptions:
     geometry_min_object: float = 0.003
     flat: bool = True
     flat_max_rate: float = 0.05
+    light_change_support: float = 0.5
+    light_change_colour: float = 0.25
+    surround_width: float = 0.05
 
     def __post_init__(self):
         if not 0 <= self.observed_min_parallax < 180:
@@ -148,6 +160,10 @@ class CompareOptions:
             raise ConfigError("config keys 'compare.evidence_open' (>= 0), "
                               "'compare.observed_depth_tol' (> 0) and "
                               "'compare.observed_min_views' (>= 1) are out of range")
+        if not 0 <= self.light_change_colour <= 2:
+            raise ConfigError("config key 'compare.light_change_colour' must lie in [0, 2]")
+        if not 0 < self.surround_width < 0.5:
+            raise ConfigError("config key 'compare.surround_width' must lie in (0, 0.5)")
         if not 0 < self.flat_max_rate <= 1:
             raise ConfigError("config key 'compare.flat_max_rate' must lie in (0, 1]")
         if self.geometry_voxel_px <= 0 or self.geometry_min_poses < 1 \
@@ -157,7 +173,7 @@ class CompareOptions:
                               "'compare.geometry_min_object' (in [0, 1)) are out of range")
         for k in ("presence_iou", "min_evidence", "vote_frac", "moved_similarity",
                   "same_similarity", "min_observed", "texture_color_similarity",
-                  "geometry_vote"):
+                  "geometry_vote", "light_change_support"):
             if not 0.0 <= getattr(self, k) <= 1.0:
                 raise ConfigError(f"config key 'compare.{k}' must lie in [0, 1]")
 
@@ -248,6 +264,41 @@ def _chroma_hist(rgb: np.ndarray | tuple, mask: np.ndarray, bins: int = 8) -> np
     h, _, _ = np.histogram2d(np.clip(c[sel, 0], 0, 0.999), np.clip(c[sel, 1], 0, 0.999),
                              bins=bins, range=[[0, 1], [0, 1]])
     return h
+
+
+def surround_colour_change(rgb0: np.ndarray, rgb1: np.ndarray, region: np.ndarray,
+                           exclude: np.ndarray, width: int, min_px: int = 1) -> float:
+    """How much the colour of ``region`` (bool [H, W]) changed between the two times once each
+    time's local light is divided out: the L1 distance (0: the same, at most 2) between the
+    chromaticities (r, g, b summing to 1) of the ratio, per channel in linear light, of the
+    region's mean colour to the mean colour of a ring ``width`` pixels wide around it
+    (``exclude`` bool [H, W] left out of the ring), in ``rgb0`` and in ``rgb1`` (sRGB
+    [H, W, 3]).
+
+    A change of light falls on an object and on the surface next to it alike (a moved
+    shadow, a warmer sun, a dimmer ambient; means are linear, so even a pattern of shadows
+    over both keeps the ratio); the ratio of their colours keeps the object's own colour. NaN
+    when the region or the ring has fewer than ``min_px`` pixels, or the ring is black."""
+    ys, xs = np.nonzero(region)
+    if len(ys) < max(min_px, 1):
+        return float("nan")
+    h, w = region.shape
+    sl = (slice(max(0, ys.min() - width - 1), min(h, ys.max() + width + 2)),
+          slice(max(0, xs.min() - width - 1), min(w, xs.max() + width + 2)))
+    reg = region[sl]
+    kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * width + 1, 2 * width + 1))
+    ring = (cv2.dilate(reg.astype(np.uint8), kernel) > 0) & ~reg & ~exclude[sl]
+    if ring.sum() < max(min_px, 1):
+        return float("nan")
+    chroma = []
+    for rgb in (rgb0, rgb1):
+        lin = srgb_to_linear(rgb[sl]).astype(np.float64)
+        light = lin[ring].mean(0)
+        if light.sum() < 1e-3:
+            return float("nan")  # the surroundings are black at this time
+        q = lin[reg].mean(0) / np.maximum(light, 1e-6)
+        chroma.append(q / max(q.sum(), 1e-9))
+    return float(np.abs(chroma[0] - chroma[1]).sum())
 
 
 def pose_stats(ids0: np.ndarray, ids1: np.ndarray, o: CompareOptions,
@@ -419,8 +470,13 @@ def pose_stats(ids0: np.ndarray, ids1: np.ndarray, o: CompareOptions,
             if cand and not has_depth and np.isnan(sim) and has_rgb and region.any():
                 evidence = float(ev_chroma()[region].mean())
                 confirmed = evidence >= o.min_evidence
+        surround = float("nan")
+        if cand and confirmed and has_rgb and region.any():
+            surround = surround_colour_change(
+                rgb0, rgb1, region, m0 | m1,
+                max(2, int(round(o.surround_width * max(ids0.shape)))), o.min_area)
         rec = dict(area0=a0, area1=a1, candidate=bool(cand), evidence=evidence,
-                   similarity=sim, confirmed=confirmed, observed=seen)
+                   similarity=sim, confirmed=confirmed, observed=seen, surround=surround)
         time = 0 if a0 else 1
         rgb, m, z = (rgb0, c0, depth0) if a0 else (rgb1, c1, depth1)
         if rgb is not None:
@@ -555,11 +611,14 @@ def decide(stats: list[tuple[object, dict[int, dict]]], o: CompareOptions) -> pd
     """Per-ID decision from the per-pose stats ``[(pose_name, pose_stats(...)), ...]``.
 
     Returns a DataFrame with columns id, changed, type, partner, n_t0, n_t1 (poses where seen
-    at each time), n_confirmed, first, last (pose names), area (mean pixels), instance (the
-    object a changed ID belongs to, see :func:`_group_instances`; 0 when unchanged).
+    at each time), n_confirmed, first, last (pose names), area (mean pixels), colour (median
+    over the poses where it was confirmed of :func:`surround_colour_change`; NaN when never
+    measured), n_colour (those poses), instance (the object a changed ID belongs to, see
+    :func:`_group_instances`; 0 when unchanged).
     """
     acc: dict[int, dict] = defaultdict(lambda: dict(n0=0, n1=0, n=0, conf=0, poses=[],
-                                                    area=[], hist=None, size=[], pos={}))
+                                                    area=[], hist=None, size=[], pos={},
+                                                    surround=[]))
     for name, st in stats:
         for t, r in st.items():
             if not r.get("observed", True):
@@ -572,6 +631,8 @@ def decide(stats: list[tuple[object, dict[int, dict]]], o: CompareOptions) -> pd
             a["poses"].append(name)
             a["area"].append(max(r["area0"], r["area1"]))
             a["size"].append(r["size"])
+            if np.isfinite(r.get("surround", np.nan)):
+                a["surround"].append(r["surround"])
             if r.get("pos") is not None:
                 a["pos"].setdefault(len(r["pos"]), []).append((r["pos"], r["pos_size"]))
             if r["hist"] is not None:
@@ -590,11 +651,13 @@ def decide(stats: list[tuple[object, dict[int, dict]]], o: CompareOptions) -> pd
         rows.append(dict(id=t, changed=bool(changed), type=typ, partner=0, n_t0=a["n0"],
                          n_t1=a["n1"], n_confirmed=a["conf"], first=a["poses"][0],
                          last=a["poses"][-1], area=float(np.mean(a["area"])),
+                         colour=(float(np.median(a["surround"])) if a["surround"]
+                                 else float("nan")), n_colour=len(a["surround"]),
                          _hist=a["hist"], _size=float(np.median(a["size"])),
                          _pos=_median_position(a["pos"])))
     df = pd.DataFrame(rows, columns=["id", "changed", "type", "partner", "n_t0", "n_t1",
-                                     "n_confirmed", "first", "last", "area", "_hist", "_size",
-                                     "_pos"])
+                                     "n_confirmed", "first", "last", "area", "colour",
+                                     "n_colour", "_hist", "_size", "_pos"])
     df["changed"] = df["changed"].astype(bool)  # also when empty: a mask, not column labels
     _pair_moved(df, o)
     _group_instances(df)

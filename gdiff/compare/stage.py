@@ -105,20 +105,28 @@ def compare_paths(ids: dict[Key, np.ndarray], frames: dict[Key, dict] | None,
                                                           o.evidence_open, known, differ),
                          points=points)
     df = decide(stats, o)
+    g_geo = geo.finish() if geo is not None else None
+    g_flat = flat.finish(max_rate=o.flat_max_rate) if flat is not None else None
+    band = max(1, int(round(2 * o.geometry_voxel_px)))
+    if geo is not None:
+        _support_3d(df, ids, geo, band)
+        if g_flat is not None and g_flat["rejected"] and o.light_change_support > 0:
+            _confirm_under_new_light(df, o, band)
+    else:
+        df["support"] = np.nan
     changed = df.loc[df["changed"], "id"].tolist()
     masks = {(p, i): change_masks(ids[(p, "t0", i)], ids[(p, "t1", i)], changed)
              for p, i in poses}
     evidence = {}
     if geo is not None:
-        g = geo.finish()
         evidence["geometry"] = (geo.voxel, geo.changed[0], geo.changed[1])
         added = _add_evidence(masks, geo)
         log.info("geometry: voxel %.4g scene units, %d changed voxels in %d objects; %d pixels "
-                 "added to the ID masks over %d poses", g["voxel"] or 0, g["changed_voxels"],
-                 g["objects"], added, len(masks))
+                 "added to the ID masks over %d poses", g_geo["voxel"] or 0,
+                 g_geo["changed_voxels"], g_geo["objects"], added, len(masks))
     if flat is not None:
-        g = flat.finish(max_rate=o.flat_max_rate)
-        rims = _rims(flat, masks, g["objects"], max(1, int(round(2 * o.geometry_voxel_px))))
+        g = g_flat
+        rims = _rims(flat, masks, g["objects"], band)
         evidence["flat"] = (flat.voxel, *(k[~np.isin(c, rims)]
                                           for k, c in zip(flat.changed, flat.component)))
         added = _add_evidence(masks, flat, leave_out=rims)
@@ -135,6 +143,86 @@ def compare_paths(ids: dict[Key, np.ndarray], frames: dict[Key, dict] | None,
              ", ".join(f"{t}: {(df['type'] == t).sum()}" for t in ("added", "removed", "moved")))
     df.attrs["evidence3d"] = evidence
     return masks, df
+
+
+def _support_3d(df: pd.DataFrame, ids: dict[Key, np.ndarray], geo: GeometryEvidence,
+                band: int) -> None:
+    """Column ``support`` (in place): per changed object (an ``instance`` of the table, all
+    its IDs together), the share of its pixels, at the poses and times where its IDs are
+    visible, within ``band`` pixels of the geometry evidence of that time
+    (:class:`gdiff.compare.geometry.GeometryEvidence`, after ``finish``): how much of it
+    changed shape in 3D. NaN for unchanged IDs."""
+    df["support"] = np.nan
+    ch = df.index[df["changed"]]
+    if len(ch) == 0:
+        return
+    id_list = df.loc[ch, "id"].to_numpy(np.int64)
+    order = np.argsort(id_list)
+    sorted_ids = id_list[order]
+    total = np.zeros(len(id_list), np.int64)
+    near = np.zeros(len(id_list), np.int64)
+    kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * band + 1, 2 * band + 1))
+    for (p, t, i), m in ids.items():
+        if (p, i) not in geo:
+            continue  # no depth at this pose: not judged in 3D
+        flat_ids = m.ravel()
+        pos = np.minimum(np.searchsorted(sorted_ids, flat_ids), len(id_list) - 1)
+        hit = sorted_ids[pos] == flat_ids
+        k = order[pos[hit]]
+        total += np.bincount(k, minlength=len(id_list))
+        lab = geo.labels((p, i))[TIMES.index(t)]
+        if (lab >= 0).any():
+            g = (cv2.dilate((lab >= 0).astype(np.uint8), kernel) > 0).ravel()
+            near += np.bincount(k[g[hit]], minlength=len(id_list))
+    inst = df.loc[ch, "instance"].to_numpy()
+    for v in np.unique(inst):
+        sel = inst == v
+        df.loc[ch[sel], "support"] = near[sel].sum() / max(total[sel].sum(), 1)
+
+
+def _confirm_under_new_light(df: pd.DataFrame, o: CompareOptions, band: int) -> None:
+    """Under a change of light, keep only the changed objects of the ID comparison whose shape
+    changed in 3D or whose own colour changed (in place: ``changed`` set False for the others,
+    with their ``type`` and ``instance``).
+
+    When the light changes, the segmenter cuts an unchanged object differently at the two
+    times, or the tracker cannot match its two looks, and the ID comparison takes it for a
+    removed and an added object: its texture and colour differ in the images (a shadow now
+    crosses it, a warmer sun lights it). Its depth stays, and so does its colour relative to
+    the floor next to it, which the same light falls on. A changed object (an ``instance`` of
+    the table, all its IDs together) is kept when its ``support`` (:func:`_support_3d`) is at
+    least ``o.light_change_support``, or when its ``colour`` relative to its surroundings
+    changed by at least ``o.light_change_colour`` (per ID,
+    :func:`gdiff.compare.change.surround_colour_change`; pooled over the instance weighted by
+    ``n_colour``): an object swapped for one of the same shape and size changes no depth, but
+    its own colour.
+    """
+    ch = df.index[df["changed"]]
+    if len(ch) == 0:
+        return
+    inst = df.loc[ch, "instance"].to_numpy()
+    colour = df.loc[ch, "colour"].to_numpy(float)
+    weight = df.loc[ch, "n_colour"].to_numpy(float) * np.isfinite(colour)
+    drop = []
+    for v in np.unique(inst):
+        sel = inst == v
+        support = float(df.loc[ch[sel], "support"].iloc[0])
+        w = weight[sel]
+        col = float((np.nan_to_num(colour[sel]) * w).sum() / w.sum()) if w.sum() else np.nan
+        kept = support >= o.light_change_support or col >= o.light_change_colour
+        log.debug("instance %d: %.2f of its pixels near a change in 3D, colour change %.2f: "
+                  "%s", v, support, col, "kept" if kept else "dropped")
+        if not kept:
+            drop.extend(ch[sel])
+    n = len(np.unique(inst))
+    log.info("change of light: %d of %d changed objects of the ID comparison changed shape "
+             "in 3D (>= %.0f %% of their pixels within %d px of the geometry evidence) or "
+             "colour (by >= %.2f, relative to their surroundings) and are kept; %d IDs "
+             "dropped", n - len(np.unique(df.loc[drop, "instance"])), n,
+             100 * o.light_change_support, band, o.light_change_colour, len(drop))
+    df.loc[drop, "changed"] = False
+    df.loc[drop, "type"] = ""
+    df.loc[drop, "instance"] = 0
 
 
 def _add_evidence(masks, ev: GeometryEvidence, leave_out: np.ndarray | None = None) -> int:

@@ -570,6 +570,39 @@ def test_threshold_null_is_chosen_from_the_key_views(tiny_fit, tmp_path):
     assert (out / "maps" / "union" / "p1_00003.png").is_file()
 
 
+def test_scene_with_no_change_gives_an_empty_partition_without_warnings(tiny_fit, tmp_path):
+    """Key-view masks with no changed pixel (compare found nothing): the partition marks no
+    Gaussian, its maps are empty and its summary says the key-view IoU is undefined (NaN)
+    without a numpy warning in the log."""
+    import json
+    import shutil
+    import warnings
+
+    import pandas as pd
+
+    from gdiff.io import read_mask, write_mask
+    from gdiff.partition import train_partition
+
+    res, scene_dir = tiny_fit
+    work = tmp_path / "results"
+    shutil.copytree(res / "change", work / "change")
+    kf = pd.read_csv(work / "change" / "keyframes.csv")
+    for col in ("mask_t0", "mask_t1", "mask_union"):
+        for rel in kf[col]:
+            write_mask(work / rel, np.zeros_like(read_mask(work / rel)))
+    out = tmp_path / "partition"
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", RuntimeWarning)
+        summary = train_partition(res / "fit" / "model.pt", res / "poses" / "cameras.json",
+                                  work / "change" / "keyframes.csv", scene_dir, out,
+                                  PartitionOptions(iterations=30, frozen_iterations=20),
+                                  device="cpu")
+    assert summary["n_changed"] == 0
+    assert np.isnan(summary["keypose_iou_union"])
+    assert np.isnan(json.loads((out / "summary.json").read_text())["keypose_iou_union"])
+    assert not any(read_mask(f).any() for f in (out / "maps" / "union").glob("*.png"))
+
+
 @pytest.mark.parametrize("geometry_lr_scale,frozen_iterations",
                          [(0.0, 4), (1.0, 4), (1.0, 0)], ids=["frozen", "two-phase", "joint"])
 def test_resume_gives_the_same_model_as_an_uninterrupted_run(tiny_fit, tmp_path,

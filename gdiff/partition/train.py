@@ -366,13 +366,21 @@ def train_partition(fit_model_path, cameras_json, keyframes_csv, scene_dir, out_
     write_csv(out / "keypose_scores.csv", scores)
     summary = {"gaussians": len(fit), **counts, "key_views": len(views),
                "iterations": opts.iterations, "threshold": pm.threshold,
-               "keypose_iou_own_time": float(np.nanmean(scores["iou_own_time"])),
-               "keypose_iou_union": float(np.nanmean(scores["iou_union"])),
+               "keypose_iou_own_time": _mean_defined(scores["iou_own_time"]),
+               "keypose_iou_union": _mean_defined(scores["iou_union"]),
                "seconds_train": t_train, "seconds_total": _time.perf_counter() - t_start}
     write_json(out / "summary.json", summary)
     shutil.rmtree(out / "ckpt", ignore_errors=True)  # finished: nothing to resume
     log.info("partition done: %s", summary)
     return summary
+
+
+def _mean_defined(x) -> float:
+    """Mean of the defined (non-NaN) values; NaN, without a warning, when there are none (no
+    key view with a changed pixel in its mask or its map: IoU is undefined there)."""
+    x = np.asarray(x, float)
+    x = x[np.isfinite(x)]
+    return float(x.mean()) if len(x) else float("nan")
 
 
 def operating_point(best_threshold: float | None, best_f1: float, f1_at_half: float,

@@ -108,6 +108,10 @@ def compare_paths(ids: dict[Key, np.ndarray], frames: dict[Key, dict] | None,
     g_geo = geo.finish() if geo is not None else None
     g_flat = flat.finish(max_rate=o.flat_max_rate) if flat is not None else None
     band = max(1, int(round(2 * o.geometry_voxel_px)))
+    if g_flat is not None and g_flat["rejected"]:  # said first: the rule below depends on it
+        log.info("flat changes: appearance changed on %.1f %% of the surfaces judged (more "
+                 "than compare.flat_max_rate = %.1f %%): taken as a change of light, nothing "
+                 "marked", 100 * g_flat["rate"], 100 * o.flat_max_rate)
     if geo is not None:
         _support_3d(df, ids, geo, band)
         if g_flat is not None and g_flat["rejected"] and o.light_change_support > 0:
@@ -130,11 +134,7 @@ def compare_paths(ids: dict[Key, np.ndarray], frames: dict[Key, dict] | None,
         evidence["flat"] = (flat.voxel, *(k[~np.isin(c, rims)]
                                           for k, c in zip(flat.changed, flat.component)))
         added = _add_evidence(masks, flat, leave_out=rims)
-        if g["rejected"]:
-            log.info("flat changes: appearance changed on %.1f %% of the surfaces judged (more "
-                     "than compare.flat_max_rate = %.1f %%): taken as a change of light, "
-                     "nothing marked", 100 * g["rate"], 100 * o.flat_max_rate)
-        else:
+        if not g["rejected"]:
             log.info("flat changes: appearance changed on %.1f %% of the surfaces judged; %d "
                      "changed voxels in %d objects, %d of them the rims or shadows of other "
                      "changes (left out); %d pixels added over %d poses", 100 * g["rate"],

@@ -848,17 +848,15 @@ def test_object_relit_and_tracked_apart_is_not_a_change_but_a_swap_is():
     ids, frames = {}, {}
     for i, cam in enumerate(cams):
         H, W = cam.height, cam.width
-        u = (np.arange(W) + 0.5 - cam.cx) / cam.fx
-        v = (np.arange(H) + 0.5 - cam.cy) / cam.fy
         z = np.full((H, W), 5.0)
+        front = world_points(np.full((H, W), 4.0), cam)  # the boxes' front plane, z = 4
         boxes = {}
         for name, (x0, x1) in (("A", (-1.4, -0.4)), ("B", (0.4, 1.4))):
-            x = cam.c2w[0, 3] + u[None, :] * 4.0 + 0 * v[:, None]
-            y = v[:, None] * 4.0 + 0 * u[None, :]
-            boxes[name] = (x >= x0) & (x <= x1) & (np.abs(y) <= 0.5)
+            boxes[name] = ((front[..., 0] >= x0) & (front[..., 0] <= x1)
+                           & (np.abs(front[..., 1]) <= 0.5))
             z[boxes[name]] = 4.0
-        x = cam.c2w[0, 3] + u[None, :] * z  # world x, y of each pixel's surface
-        y = v[:, None] * z
+        P = world_points(z, cam)  # world x, y of each pixel's surface
+        x, y = P[..., 0], P[..., 1]
         wall = np.stack([0.55 + 0.02 * np.sin(3 * x), 0.5 + 0 * x, 0.45 + 0 * x], -1)
         stripes = (0.5 + 0.4 * np.sin(25 * x))[..., None]
         ribs = 0.35 * np.cos(25 * x)[..., None]  # box A is ribbed: lit from the left, then right

@@ -156,28 +156,24 @@ def _support_3d(df: pd.DataFrame, ids: dict[Key, np.ndarray], geo: GeometryEvide
     ch = df.index[df["changed"]]
     if len(ch) == 0:
         return
-    id_list = df.loc[ch, "id"].to_numpy(np.int64)
-    order = np.argsort(id_list)
-    sorted_ids = id_list[order]
-    total = np.zeros(len(id_list), np.int64)
-    near = np.zeros(len(id_list), np.int64)
+    size = int(max(int(m.max()) for m in ids.values())) + 1  # pixel counts per ID value
+    total = np.zeros(size, np.int64)
+    near = np.zeros(size, np.int64)
     kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * band + 1, 2 * band + 1))
-    for (p, t, i), m in ids.items():
+    for p, i in sorted({(p, i) for p, _, i in ids}):
         if (p, i) not in geo:
             continue  # no depth at this pose: not judged in 3D
-        flat_ids = m.ravel()
-        pos = np.minimum(np.searchsorted(sorted_ids, flat_ids), len(id_list) - 1)
-        hit = sorted_ids[pos] == flat_ids
-        k = order[pos[hit]]
-        total += np.bincount(k, minlength=len(id_list))
-        lab = geo.labels((p, i))[TIMES.index(t)]
-        if (lab >= 0).any():
-            g = (cv2.dilate((lab >= 0).astype(np.uint8), kernel) > 0).ravel()
-            near += np.bincount(k[g[hit]], minlength=len(id_list))
+        for t, lab in zip(TIMES, geo.labels((p, i))):
+            m = ids[(p, t, i)].ravel()
+            total += np.bincount(m, minlength=size)
+            if (lab >= 0).any():
+                g = (cv2.dilate((lab >= 0).astype(np.uint8), kernel) > 0).ravel()
+                near += np.bincount(m[g], minlength=size)
+    changed = df.loc[ch, "id"].to_numpy(np.int64)
     inst = df.loc[ch, "instance"].to_numpy()
     for v in np.unique(inst):
-        sel = inst == v
-        df.loc[ch[sel], "support"] = near[sel].sum() / max(total[sel].sum(), 1)
+        members = changed[inst == v]
+        df.loc[ch[inst == v], "support"] = near[members].sum() / max(total[members].sum(), 1)
 
 
 def _confirm_under_new_light(df: pd.DataFrame, o: CompareOptions, band: int) -> None:
@@ -201,14 +197,14 @@ def _confirm_under_new_light(df: pd.DataFrame, o: CompareOptions, band: int) -> 
     if len(ch) == 0:
         return
     inst = df.loc[ch, "instance"].to_numpy()
-    colour = df.loc[ch, "colour"].to_numpy(float)
-    weight = df.loc[ch, "n_colour"].to_numpy(float) * np.isfinite(colour)
+    colour = np.nan_to_num(df.loc[ch, "colour"].to_numpy(float))  # NaN only where n_colour 0
+    weight = df.loc[ch, "n_colour"].to_numpy(float)
     drop = []
     for v in np.unique(inst):
         sel = inst == v
         support = float(df.loc[ch[sel], "support"].iloc[0])
         w = weight[sel]
-        col = float((np.nan_to_num(colour[sel]) * w).sum() / w.sum()) if w.sum() else np.nan
+        col = float((colour[sel] * w).sum() / w.sum()) if w.sum() else np.nan
         kept = support >= o.light_change_support or col >= o.light_change_colour
         log.debug("instance %d: %.2f of its pixels near a change in 3D, colour change %.2f: "
                   "%s", v, support, col, "kept" if kept else "dropped")

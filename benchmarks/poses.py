@@ -5,6 +5,7 @@ Usage::
     python benchmarks/poses.py SCENE_DIR [--matcher auto|exhaustive|sequential] [--out DIR]
         [--camera-model PINHOLE|SIMPLE_PINHOLE] [--refine-principal-point] [--csv FILE]
         [--max-reproj-error PX] [--refine-iterations N] [--mapper-attempts N] [--threads N]
+        [--repeatable|--no-repeatable]
         [--dsp|--no-dsp]
 
 SCENE_DIR must hold ``gt_cameras.json`` (e.g. the shared test scenes). Runs the poses stage
@@ -43,6 +44,8 @@ def main(argv=None) -> int:
     ap.add_argument("--refine-iterations", type=int, default=d.refine_iterations)
     ap.add_argument("--mapper-attempts", type=int, default=d.mapper_attempts)
     ap.add_argument("--threads", type=int, default=d.num_threads)
+    ap.add_argument("--repeatable", action=argparse.BooleanOptionalAction,
+                    default=d.repeatable, help="one thread for extraction, mapping and BA")
     ap.add_argument("--dsp", action=argparse.BooleanOptionalAction,
                     default=d.domain_size_pooling, help="DSP-SIFT descriptors")
     ap.add_argument("--out", help="keep the poses outputs here (default: a temporary folder)")
@@ -64,7 +67,7 @@ def main(argv=None) -> int:
             refine_principal_point=args.refine_principal_point,
             max_reproj_error=args.max_reproj_error, refine_iterations=args.refine_iterations,
             mapper_attempts=args.mapper_attempts, num_threads=args.threads,
-            domain_size_pooling=args.dsp))
+            repeatable=args.repeatable, domain_size_pooling=args.dsp))
         seconds = time.time() - t0
         load1 = os.getloadavg()[0]
         est = load_cameras(out / "cameras.json")

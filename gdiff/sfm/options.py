@@ -79,6 +79,12 @@ class PosesOptions:
             than this fraction of its images, the stage fails listing them; otherwise they are
             dropped with a warning.
         num_threads: CPU threads for COLMAP (-1 = all).
+        repeatable: run feature extraction, mapping and bundle adjustment on one thread, so
+            two runs on the same photos give byte-identical poses and points (with several
+            threads the extraction order decides COLMAP's image ids and the threads' order
+            of sums moves the solution slightly; the fit then grows such differences). Only
+            matching, the stage's quadratic part, uses ``num_threads``. Off = all of COLMAP
+            on ``num_threads``.
         seed: random seed of COLMAP's RANSAC and mapper (for repeatable runs).
         colmap_log: let COLMAP write its own INFO log lines to stderr.
     """
@@ -103,6 +109,7 @@ class PosesOptions:
     seed_points_per_image: int = 1000
     max_unregistered_fraction: float = 0.2
     num_threads: int = -1
+    repeatable: bool = True
     seed: int = 0
     colmap_log: bool = False
 
@@ -130,6 +137,11 @@ class PosesOptions:
             raise ValueError("resample_max_side must be >= 0 (pixels; 0 = no cap)")
         if self.refine_iterations < 0 or self.mapper_attempts < 1:
             raise ValueError("refine_iterations must be >= 0 and mapper_attempts >= 1")
+
+    def serial_threads(self) -> int:
+        """Threads for the COLMAP steps whose result depends on the thread order (feature
+        extraction, mapping, bundle adjustment): 1 when ``repeatable``."""
+        return 1 if self.repeatable else self.num_threads
 
     def exhaustive_limit(self) -> int:
         """Image count up to which ``matcher: auto`` matches all pairs."""

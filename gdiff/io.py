@@ -76,6 +76,16 @@ def atomic_path(path: str | os.PathLike, suffix: str | None = None) -> Iterator[
         raise
 
 
+def save_torch(obj, path: str | os.PathLike) -> None:
+    """``torch.save`` of ``obj`` to ``path``, atomically. The archive is written through a file
+    object, so its inner folder name is torch's fixed default, not the temporary file's name:
+    saving the same object twice gives the same bytes."""
+    import torch
+
+    with atomic_path(path) as tmp, open(tmp, "wb") as f:
+        torch.save(obj, f)
+
+
 def link_or_copy(src: str | os.PathLike, dst: str | os.PathLike) -> None:
     """Make ``dst`` the same file as ``src``: a hard link, else a copy (replacing ``dst``
     atomically)."""

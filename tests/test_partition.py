@@ -386,6 +386,10 @@ def test_change_map_union_split_and_save_load(tmp_path):
     pm2 = load_partition_model(tmp_path / "model.pt", "cpu")
     r2 = render_change_map(pm2, cam, None)
     np.testing.assert_allclose(r2["prob"], r["prob"], atol=1e-6)
+    # saving the same model again gives the same bytes (the archive is not named after the
+    # temporary file), so repeated runs can be compared file by file
+    save_partition_model(pm, tmp_path / "again.pt")
+    assert (tmp_path / "again.pt").read_bytes() == (tmp_path / "model.pt").read_bytes()
 
 
 def test_load_partition_model_errors(tmp_path):

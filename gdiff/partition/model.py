@@ -16,7 +16,7 @@ from torch import nn
 from ..cameras import Camera
 from ..device import resolve_device
 from ..errors import ModelFileError
-from ..io import atomic_path
+from ..io import save_torch
 from ..splat.model import GaussianModel4D
 from .head import ChangeHead, change_probability
 from .options import PartitionOptions
@@ -126,8 +126,7 @@ def partition_blob(pmodel: PartitionModel, options: PartitionOptions | None = No
 def save_partition_model(pmodel: PartitionModel, path, options: PartitionOptions | None = None
                          ) -> None:
     """Write the partition ``model.pt`` atomically (format ``gdiff.PartitionModel``)."""
-    with atomic_path(path) as tmp:
-        torch.save(partition_blob(pmodel, options), tmp)
+    save_torch(partition_blob(pmodel, options), path)
 
 
 def load_partition_model(path, device="auto") -> PartitionModel:

@@ -21,7 +21,7 @@ import torch
 from ..cameras import Camera, image_root
 from ..device import resolve_device
 from ..errors import TrainingError
-from ..io import atomic_path, write_csv, write_json
+from ..io import atomic_path, save_torch, write_csv, write_json
 from ..knn import NeighbourIndex
 from ..log import progress
 from ..metrics import confusion, scores_from_counts
@@ -112,8 +112,7 @@ def _save_checkpoint(ckdir, it, pm, opt, index, rows, opts, key) -> None:
     ckdir = Path(ckdir)
     blob = {"iteration": it, "pmodel": partition_blob(pm, opts), "optimizer": opt.state_dict(),
             "index": index.state_dict(), "log": rows, "key": key}
-    with atomic_path(ckdir / f"ckpt_{it:06d}.pt") as tmp:
-        torch.save(blob, tmp)
+    save_torch(blob, ckdir / f"ckpt_{it:06d}.pt")
     for old in sorted(ckdir.glob("ckpt_*.pt"))[:-2]:  # keep the two newest
         old.unlink(missing_ok=True)
 

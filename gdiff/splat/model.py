@@ -42,7 +42,7 @@ import torch
 from torch import nn
 
 from ..errors import ModelFileError
-from ..io import atomic_path
+from ..io import save_torch
 from .deform import DeformConfig, Deformation
 from .gaussians import TIME_TERMS, Gaussians, init_params, num_sh_coeffs
 from .reflection import Environment
@@ -214,8 +214,7 @@ def save_model(model: GaussianModel4D, path: str | os.PathLike, meta: dict | Non
     blob = {"format": FORMAT, "version": VERSION, "config": model.config(),
             "state_dict": {k: v.detach().cpu() for k, v in model.state_dict().items()},
             "meta": meta or {}}
-    with atomic_path(path) as tmp:
-        torch.save(blob, tmp)
+    save_torch(blob, path)
 
 
 def load_model(path: str | os.PathLike, device: torch.device | str = "cpu") -> GaussianModel4D:

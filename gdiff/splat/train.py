@@ -76,7 +76,7 @@ import torch
 from ..cameras import Camera, image_root, load_cameras
 from ..device import resolve_device
 from ..errors import SceneError, TrainingError
-from ..io import atomic_path, read_image, write_csv
+from ..io import read_image, save_torch, write_csv
 from ..log import progress
 from .deform import DeformConfig
 from .exposure import ExposureCorrection
@@ -647,8 +647,7 @@ def fit_scene(scene_dir: str | Path, cameras_json: str | Path, points_ply: str |
             raise FloatingPointError("parameters are not finite")
         st = trainer.state_dict()
         st["fingerprint"], st["options"] = fingerprint, key
-        with atomic_path(ckpt) as tmp:
-            torch.save(st, tmp)
+        save_torch(st, ckpt)
 
     total = opts.total_iters
     bar = progress(total=total, initial=trainer.iteration, desc="fit")

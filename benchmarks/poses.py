@@ -45,7 +45,7 @@ def main(argv=None) -> int:
     ap.add_argument("--mapper-attempts", type=int, default=d.mapper_attempts)
     ap.add_argument("--threads", type=int, default=d.num_threads)
     ap.add_argument("--repeatable", action=argparse.BooleanOptionalAction,
-                    default=d.repeatable, help="one thread for extraction, mapping and BA")
+                    default=d.repeatable, help="all of COLMAP on one thread")
     ap.add_argument("--dsp", action=argparse.BooleanOptionalAction,
                     default=d.domain_size_pooling, help="DSP-SIFT descriptors")
     ap.add_argument("--out", help="keep the poses outputs here (default: a temporary folder)")

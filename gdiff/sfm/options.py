@@ -79,12 +79,12 @@ class PosesOptions:
             than this fraction of its images, the stage fails listing them; otherwise they are
             dropped with a warning.
         num_threads: CPU threads for COLMAP (-1 = all).
-        repeatable: run feature extraction, mapping and bundle adjustment on one thread, so
-            two runs on the same photos give byte-identical poses and points (with several
-            threads the extraction order decides COLMAP's image ids and the threads' order
-            of sums moves the solution slightly; the fit then grows such differences). Only
-            matching, the stage's quadratic part, uses ``num_threads``. Off = all of COLMAP
-            on ``num_threads``.
+        repeatable: run all of COLMAP (feature extraction, matching, mapping, bundle
+            adjustment) on one thread, so two runs on the same photos give byte-identical poses
+            and points. With several threads the extraction order decides COLMAP's image ids,
+            each verification thread draws its own RANSAC samples for whichever pairs it gets,
+            and the order of sums in mapping moves the solution slightly; the fit then grows
+            such differences. Off = COLMAP on ``num_threads``.
         seed: random seed of COLMAP's RANSAC and mapper (for repeatable runs).
         colmap_log: let COLMAP write its own INFO log lines to stderr.
     """
@@ -139,8 +139,8 @@ class PosesOptions:
             raise ValueError("refine_iterations must be >= 0 and mapper_attempts >= 1")
 
     def serial_threads(self) -> int:
-        """Threads for the COLMAP steps whose result depends on the thread order (feature
-        extraction, mapping, bundle adjustment): 1 when ``repeatable``."""
+        """Threads for COLMAP: 1 when ``repeatable`` (every step's result depends on the
+        threads' order), else ``num_threads``."""
         return 1 if self.repeatable else self.num_threads
 
     def exhaustive_limit(self) -> int:

@@ -41,7 +41,7 @@ def _extract(db: Path, scene_dir: Path, names: list[str], opts: PosesOptions,
     if camera_params is not None:
         ro.camera_params = ",".join(f"{v:.10g}" for v in camera_params)
     eo = pycolmap.FeatureExtractionOptions()
-    eo.num_threads = opts.serial_threads()
+    eo.num_threads = opts.colmap_threads()
     eo.max_image_size = opts.max_image_size
     eo.sift.max_num_features = opts.max_num_features
     eo.sift.domain_size_pooling = bool(opts.domain_size_pooling)
@@ -80,7 +80,7 @@ def _match(db: Path, work: Path, opts: PosesOptions, pairs: list[tuple[str, str]
     import pycolmap
 
     mo = pycolmap.FeatureMatchingOptions()
-    mo.num_threads = opts.serial_threads()
+    mo.num_threads = opts.colmap_threads()
     vo = pycolmap.TwoViewGeometryOptions()
     vo.ransac.random_seed = opts.seed
     vo.ransac.max_error = 2.0 * opts.max_reproj_error * pixel_scale
@@ -130,7 +130,7 @@ def _mapper_options(opts: PosesOptions, n_images: int, pixel_scale: float = 1.0,
     import pycolmap
 
     mp = pycolmap.IncrementalPipelineOptions()
-    mp.num_threads = opts.serial_threads()
+    mp.num_threads = opts.colmap_threads()
     mp.random_seed = opts.seed if seed is None else seed
     err = relax * opts.max_reproj_error * pixel_scale
     mp.mapper.filter_max_reproj_error = err
@@ -299,7 +299,7 @@ def _run_colmap(root: Path, work: Path, images, sizes, opts: PosesOptions):
     dropped = _check_unregistered(images, set(by_name), opts.max_unregistered_fraction,
                                   f"COLMAP registration of {root}")
     refine = refine_model(rec, opts.max_reproj_error * scale, opts.refine_iterations,
-                          opts.refine_principal_point, opts.serial_threads())
+                          opts.refine_principal_point, opts.colmap_threads())
     cams = []
     for n, st in images:
         if n in dropped:

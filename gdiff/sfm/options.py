@@ -78,7 +78,7 @@ class PosesOptions:
         max_unregistered_fraction: if a set (before, after, eval_before, eval_after) loses more
             than this fraction of its images, the stage fails listing them; otherwise they are
             dropped with a warning.
-        num_threads: CPU threads for COLMAP (-1 = all).
+        num_threads: CPU threads for COLMAP when ``repeatable`` is off (-1 = all).
         repeatable: run all of COLMAP (feature extraction, matching, mapping, bundle
             adjustment) on one thread, so two runs on the same photos give byte-identical poses
             and points. With several threads the extraction order decides COLMAP's image ids,
@@ -138,9 +138,9 @@ class PosesOptions:
         if self.refine_iterations < 0 or self.mapper_attempts < 1:
             raise ValueError("refine_iterations must be >= 0 and mapper_attempts >= 1")
 
-    def serial_threads(self) -> int:
-        """Threads for COLMAP: 1 when ``repeatable`` (every step's result depends on the
-        threads' order), else ``num_threads``."""
+    def colmap_threads(self) -> int:
+        """Threads for every COLMAP step: 1 when ``repeatable`` (each step's result depends on
+        the threads' order), else ``num_threads``."""
         return 1 if self.repeatable else self.num_threads
 
     def exhaustive_limit(self) -> int:

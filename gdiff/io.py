@@ -76,6 +76,19 @@ def atomic_path(path: str | os.PathLike, suffix: str | None = None) -> Iterator[
         raise
 
 
+def remove_stale_temporaries(folder: str | os.PathLike) -> list[Path]:
+    """Delete the temporary files that ``atomic_path`` left in ``folder`` when its process was
+    killed mid-write (SIGKILL, power loss: no ``except`` ran). Call it where a stage reopens a
+    folder it owns, such as its checkpoint folder on resume. Returns the removed paths."""
+    folder = Path(folder)
+    if not folder.is_dir():
+        return []
+    stale = sorted(p for p in folder.glob(".*.tmp*") if p.is_file())
+    for p in stale:
+        p.unlink(missing_ok=True)
+    return stale
+
+
 def save_torch(obj, path: str | os.PathLike) -> None:
     """``torch.save`` of ``obj`` to ``path``, atomically. The archive is written through a file
     object, so its inner folder name is torch's fixed default, not the temporary file's name:

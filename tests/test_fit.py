@@ -228,7 +228,11 @@ def test_resume_after_interruption_matches_uninterrupted(scene, tmp_path):
         fit_scene(scene.dir, scene.cameras, scene.points, out, opts, "cpu", callback=interrupt)
     assert (out / "ckpt" / "last.pt").is_file() and not (out / "model.pt").exists()
     shutil.copy(out / "ckpt" / "last.pt", tmp_path / "saved.pt")
+    # a process killed while writing the next checkpoint leaves a half-written temporary file
+    half = out / "ckpt" / ".last.k1ll3d.tmp.pt"
+    half.write_bytes((out / "ckpt" / "last.pt").read_bytes()[:1000])
     res = fit_scene(scene.dir, scene.cameras, scene.points, out, opts, "cpu")
+    assert not half.exists() and not list(out.rglob("*.tmp*"))
     assert res["resumed_from"] == 30 and res["iterations"] == ref["iterations"] == 50
     assert res["n_gaussians"] == ref["n_gaussians"]
     for t in (0, 1):

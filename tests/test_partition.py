@@ -640,7 +640,10 @@ def test_resume_gives_the_same_model_as_an_uninterrupted_run(tiny_fit, tmp_path,
     assert sorted(p.name for p in (tmp_path / "b").iterdir()) == ["ckpt_000003.pt",
                                                                   "ckpt_000004.pt"]
     (tmp_path / "b" / "ckpt_000004.pt").unlink()  # resume from 3, mid-way between refreshes
+    # as if killed while writing checkpoint 4: a half-written temporary file is left
+    (tmp_path / "b" / ".ckpt_000004.x.tmp.pt").write_bytes(b"PK\x03\x04")
     b, rows_b = run(tmp_path / "b", 7)
+    assert not list((tmp_path / "b").glob(".*.tmp*"))
     fresh, _ = run(tmp_path / "c", 0)
     assert not torch.allclose(a.head.encoding, fresh.head.encoding)
     torch.testing.assert_close(b.head.encoding, a.head.encoding, atol=1e-5, rtol=1e-4)

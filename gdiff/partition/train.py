@@ -21,7 +21,7 @@ import torch
 from ..cameras import Camera, image_root
 from ..device import resolve_device
 from ..errors import TrainingError
-from ..io import atomic_path, save_torch, write_csv, write_json
+from ..io import atomic_path, remove_stale_temporaries, save_torch, write_csv, write_json
 from ..knn import NeighbourIndex
 from ..log import progress
 from ..metrics import confusion, scores_from_counts
@@ -93,6 +93,8 @@ def _tv_loss(pm: PartitionModel, lambda_tv: float | None) -> torch.Tensor:
 
 
 def _latest_checkpoint(ckdir):
+    for p in remove_stale_temporaries(ckdir):
+        log.info("removed %s, left by an interrupted checkpoint write", p)
     files = sorted(Path(ckdir).glob("ckpt_*.pt"))
     return files[-1] if files else None
 

@@ -76,7 +76,7 @@ import torch
 from ..cameras import Camera, image_root, load_cameras
 from ..device import resolve_device
 from ..errors import SceneError, TrainingError
-from ..io import read_image, save_torch, write_csv
+from ..io import read_image, remove_stale_temporaries, save_torch, write_csv
 from ..log import progress
 from .deform import DeformConfig
 from .exposure import ExposureCorrection
@@ -628,6 +628,8 @@ def fit_scene(scene_dir: str | Path, cameras_json: str | Path, points_ply: str |
     fingerprint = _fingerprint(Path(cameras_json), Path(points_ply))
     key = _options_key(opts)
     resumed = 0
+    for p in remove_stale_temporaries(ckpt.parent):
+        log.info("removed %s, left by an interrupted checkpoint write", p)
     if ckpt.is_file():
         try:
             st = torch.load(ckpt, map_location="cpu", weights_only=True)

@@ -412,7 +412,9 @@ def test_unobserved_region_is_not_a_change():
     depth[("p1", "t1", 0)][10:25, 5:15] = 4.0
     frames = {k: dict(depth=depth[k], camera=cam_a if k[0] == "p1" else cam_b) for k in ids}
     keys = {("p1", 0): 0, ("p2", 0): 1}
-    o = CompareOptions(min_area=4, observed_min_views=1, observed_min_parallax=0.0)
+    # two poses: the 3D evidence that confirms a changed ID may come from one pose
+    o = CompareOptions(min_area=4, observed_min_views=1, observed_min_parallax=0.0,
+                       geometry_min_poses=1)
     _, blind = compare_paths(ids, frames, o)
     assert set(blind.loc[blind["changed"], "id"]) == {2, 3}  # without coverage: both
     masks, df = compare_paths(ids, frames, o, keys=keys)
@@ -740,6 +742,34 @@ def test_geometry_evidence_finds_an_object_merged_with_its_support():
     assert sum(m0.sum() for m0, _ in no_rgb.values()) > 0
 
 
+def test_id_change_without_3d_or_colour_change_is_not_a_change_under_unchanged_light():
+    """The light is the same at both times and a box is added. At t1 the fit also rendered a
+    piece of the far wall at a wrong depth, another one at each pose (fit noise), and the
+    segmenter cut it apart: at every pose the ID comparison sees a new segment whose depth
+    changed. It is no change: it is not where a surface appeared in 3D (the per-pose depths
+    do not agree on a place) and its colour relative to the wall around it is the same. The
+    box is kept: its shape changed in 3D."""
+    cams = [_wall_camera(x) for x in np.linspace(-1.0, 1.0, 9)]
+    ids, frames = {}, {}
+    for i, cam in enumerate(cams):
+        z0, z1 = _box_scene_depth(cam, False), _box_scene_depth(cam, True)
+        box = z1 < 4.5
+        P = world_points(z0, cam)  # the wall's world x, y at each pixel
+        piece = (P[..., 0] >= -2.4) & (P[..., 0] <= -1.7) & (P[..., 1] >= 0.4) & (P[..., 1] <= 1.0)
+        z1[piece] = 5.0 * (0.9 - 0.1 * (i % 4))  # 10 to 40 % nearer, another depth per pose
+        rgb0, rgb1 = _wall_rgb(cam, z0), _wall_rgb(cam, z0, box)  # the wall as at t0
+        ids0 = np.ones(z0.shape, np.int32)
+        ids1 = np.ones(z0.shape, np.int32)
+        ids1[box], ids1[piece] = 3, 2
+        for t, z, rgb, m in (("t0", z0, rgb0, ids0), ("t1", z1, rgb1, ids1)):
+            ids[("p1", t, i)] = m
+            frames[("p1", t, i)] = dict(depth=z, camera=cam, rgb=rgb)
+    _, df = compare_paths(ids, frames, CompareOptions())
+    assert set(df.loc[df["changed"], "id"]) == {3}, df
+    _, ungated = compare_paths(ids, frames, CompareOptions(confirm_support=0.0))
+    assert set(ungated.loc[ungated["changed"], "id"]) == {2, 3}  # what the IDs alone say
+
+
 def test_flat_object_merged_with_its_support_is_found_in_3d(tmp_path):
     """A poster hangs on the wall at t0 and is gone at t1; the segmenter gave it and the wall
     one ID at both times and its depth is the wall's. Its change of appearance, voted in 3D
@@ -879,5 +909,5 @@ def test_object_relit_and_tracked_apart_is_not_a_change_but_a_swap_is():
     _, df = compare_paths(ids, frames, CompareOptions())
     changed = set(df.loc[df["changed"], "id"])
     assert changed == {4, 5}, df
-    _, ungated = compare_paths(ids, frames, CompareOptions(light_change_support=0.0))
+    _, ungated = compare_paths(ids, frames, CompareOptions(confirm_support=0.0))
     assert {2, 3} <= set(ungated.loc[ungated["changed"], "id"])  # what the ID comparison saw

@@ -110,13 +110,14 @@ class CompareOptions:
     flat_max_rate: when more than this share of the surfaces judged in 3D (seen from
         ``geometry_min_poses`` poses) changed appearance, the change is taken to be one of
         light (moved shadows, another sun) and the flat evidence is not used.
-    light_change_support: under such a change of light, a changed object of the ID comparison
-        is kept only when at least this share of its pixels lie within two voxels of the
-        geometry evidence (its shape changed in 3D) ...
-    light_change_colour: ... or its colour relative to its surroundings changed by at least
-        this (``colour`` of the changes table, :func:`surround_colour_change`;
-        :func:`gdiff.compare.stage._confirm_under_new_light`). ``light_change_support`` 0
-        keeps them all.
+    confirm_support: a changed object of the ID comparison is kept only when at least this
+        share of its pixels lie within two voxels of the 3D evidence (the geometry evidence:
+        its shape changed; and, when the light stayed the same, the flat evidence: its
+        surface's appearance changed) ...
+    confirm_colour: ... or its colour relative to its surroundings changed by at least this
+        (``colour`` of the changes table, :func:`surround_colour_change`;
+        :func:`gdiff.compare.stage._confirm_by_evidence`). ``confirm_support`` 0 keeps them
+        all.
     surround_width: width of the ring around a region whose mean colour stands for the local
         light in :func:`surround_colour_change`, as a fraction of the image's longer side.
     """
@@ -145,8 +146,8 @@ class CompareOptions:
     geometry_min_object: float = 0.003
     flat: bool = True
     flat_max_rate: float = 0.05
-    light_change_support: float = 0.5
-    light_change_colour: float = 0.25
+    confirm_support: float = 0.5
+    confirm_colour: float = 0.25
     surround_width: float = 0.05
 
     def __post_init__(self):
@@ -160,8 +161,8 @@ class CompareOptions:
             raise ConfigError("config keys 'compare.evidence_open' (>= 0), "
                               "'compare.observed_depth_tol' (> 0) and "
                               "'compare.observed_min_views' (>= 1) are out of range")
-        if not 0 <= self.light_change_colour <= 2:
-            raise ConfigError("config key 'compare.light_change_colour' must lie in [0, 2]")
+        if not 0 <= self.confirm_colour <= 2:
+            raise ConfigError("config key 'compare.confirm_colour' must lie in [0, 2]")
         if not 0 < self.surround_width < 0.5:
             raise ConfigError("config key 'compare.surround_width' must lie in (0, 0.5)")
         if not 0 < self.flat_max_rate <= 1:
@@ -173,7 +174,7 @@ class CompareOptions:
                               "'compare.geometry_min_object' (in [0, 1)) are out of range")
         for k in ("presence_iou", "min_evidence", "vote_frac", "moved_similarity",
                   "same_similarity", "min_observed", "texture_color_similarity",
-                  "geometry_vote", "light_change_support"):
+                  "geometry_vote", "confirm_support"):
             if not 0.0 <= getattr(self, k) <= 1.0:
                 raise ConfigError(f"config key 'compare.{k}' must lie in [0, 1]")
 

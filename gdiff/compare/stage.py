@@ -113,9 +113,11 @@ def compare_paths(ids: dict[Key, np.ndarray], frames: dict[Key, dict] | None,
                  "than compare.flat_max_rate = %.1f %%): taken as a change of light, nothing "
                  "marked", 100 * g_flat["rate"], 100 * o.flat_max_rate)
     if geo is not None:
-        _support_3d(df, ids, geo, band)
-        if g_flat is not None and g_flat["rejected"] and o.light_change_support > 0:
-            _confirm_under_new_light(df, o, band)
+        trusted = [geo] + ([flat] if g_flat is not None and not g_flat["rejected"] else [])
+        _support_3d(df, ids, trusted, band)
+        if o.confirm_support > 0:
+            light_changed = g_flat is not None and g_flat["rejected"]
+            _confirm_by_evidence(df, o, band, light_changed)
     else:
         df["support"] = np.nan
     changed = df.loc[df["changed"], "id"].tolist()
@@ -145,13 +147,14 @@ def compare_paths(ids: dict[Key, np.ndarray], frames: dict[Key, dict] | None,
     return masks, df
 
 
-def _support_3d(df: pd.DataFrame, ids: dict[Key, np.ndarray], geo: GeometryEvidence,
+def _support_3d(df: pd.DataFrame, ids: dict[Key, np.ndarray], evidence: list[GeometryEvidence],
                 band: int) -> None:
     """Column ``support`` (in place): per changed object (an ``instance`` of the table, all
     its IDs together), the share of its pixels, at the poses and times where its IDs are
-    visible, within ``band`` pixels of the geometry evidence of that time
-    (:class:`gdiff.compare.geometry.GeometryEvidence`, after ``finish``): how much of it
-    changed shape in 3D. NaN for unchanged IDs."""
+    visible, within ``band`` pixels of the change pixels of that time of any of ``evidence``
+    (:class:`gdiff.compare.geometry.GeometryEvidence` objects, after ``finish``; the first
+    decides which poses were judged in 3D): how much of it changed in 3D. NaN for unchanged
+    IDs."""
     df["support"] = np.nan
     ch = df.index[df["changed"]]
     if len(ch) == 0:
@@ -161,13 +164,15 @@ def _support_3d(df: pd.DataFrame, ids: dict[Key, np.ndarray], geo: GeometryEvide
     near = np.zeros(size, np.int64)
     kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * band + 1, 2 * band + 1))
     for p, i in sorted({(p, i) for p, _, i in ids}):
-        if (p, i) not in geo:
+        if (p, i) not in evidence[0]:
             continue  # no depth at this pose: not judged in 3D
-        for t, lab in zip(TIMES, geo.labels((p, i))):
+        labels = [ev.labels((p, i)) for ev in evidence if (p, i) in ev]
+        for k, t in enumerate(TIMES):
             m = ids[(p, t, i)].ravel()
             total += np.bincount(m, minlength=size)
-            if (lab >= 0).any():
-                g = (cv2.dilate((lab >= 0).astype(np.uint8), kernel) > 0).ravel()
+            hit = np.any([lab[k] >= 0 for lab in labels], axis=0)
+            if hit.any():
+                g = (cv2.dilate(hit.astype(np.uint8), kernel) > 0).ravel()
                 near += np.bincount(m[g], minlength=size)
     changed = df.loc[ch, "id"].to_numpy(np.int64)
     inst = df.loc[ch, "instance"].to_numpy()
@@ -176,22 +181,25 @@ def _support_3d(df: pd.DataFrame, ids: dict[Key, np.ndarray], geo: GeometryEvide
         df.loc[ch[inst == v], "support"] = near[members].sum() / max(total[members].sum(), 1)
 
 
-def _confirm_under_new_light(df: pd.DataFrame, o: CompareOptions, band: int) -> None:
-    """Under a change of light, keep only the changed objects of the ID comparison whose shape
-    changed in 3D or whose own colour changed (in place: ``changed`` set False for the others,
-    with their ``type`` and ``instance``).
+def _confirm_by_evidence(df: pd.DataFrame, o: CompareOptions, band: int,
+                         light_changed: bool = False) -> None:
+    """Keep only the changed objects of the ID comparison that the 3D evidence or their own
+    colour confirms (in place: ``changed`` set False for the others, with their ``type`` and
+    ``instance``).
 
-    When the light changes, the segmenter cuts an unchanged object differently at the two
-    times, or the tracker cannot match its two looks, and the ID comparison takes it for a
-    removed and an added object: its texture and colour differ in the images (a shadow now
-    crosses it, a warmer sun lights it). Its depth stays, and so does its colour relative to
-    the floor next to it, which the same light falls on. A changed object (an ``instance`` of
-    the table, all its IDs together) is kept when its ``support`` (:func:`_support_3d`) is at
-    least ``o.light_change_support``, or when its ``colour`` relative to its surroundings
-    changed by at least ``o.light_change_colour`` (per ID,
+    An ID missing at one time is a change only if the object is: the segmenter also cuts an
+    unchanged surface differently at the two renders (a textured floor or wall far away, in
+    pieces that differ between the times), and under a change of light the tracker cannot match
+    an unchanged object's two looks (a shadow now crosses it, a warmer sun lights it), so it
+    shows up as removed and added. Neither changes the surface in 3D, nor its colour relative
+    to the surface next to it, which the same light falls on. A changed object (an
+    ``instance`` of the table, all its IDs together) is kept when its ``support``
+    (:func:`_support_3d`: near the geometry evidence, and with unchanged light the flat
+    evidence) is at least ``o.confirm_support``, or when its ``colour`` relative to its
+    surroundings changed by at least ``o.confirm_colour`` (per ID,
     :func:`gdiff.compare.change.surround_colour_change`; pooled over the instance weighted by
     ``n_colour``): an object swapped for one of the same shape and size changes no depth, but
-    its own colour.
+    its own colour. ``light_changed`` only words the log.
     """
     ch = df.index[df["changed"]]
     if len(ch) == 0:
@@ -205,17 +213,18 @@ def _confirm_under_new_light(df: pd.DataFrame, o: CompareOptions, band: int) -> 
         support = float(df.loc[ch[sel], "support"].iloc[0])
         w = weight[sel]
         col = float((colour[sel] * w).sum() / w.sum()) if w.sum() else np.nan
-        kept = support >= o.light_change_support or col >= o.light_change_colour
+        kept = support >= o.confirm_support or col >= o.confirm_colour
         log.debug("instance %d: %.2f of its pixels near a change in 3D, colour change %.2f: "
                   "%s", v, support, col, "kept" if kept else "dropped")
         if not kept:
             drop.extend(ch[sel])
     n = len(np.unique(inst))
-    log.info("change of light: %d of %d changed objects of the ID comparison changed shape "
-             "in 3D (>= %.0f %% of their pixels within %d px of the geometry evidence) or "
-             "colour (by >= %.2f, relative to their surroundings) and are kept; %d IDs "
-             "dropped", n - len(np.unique(df.loc[drop, "instance"])), n,
-             100 * o.light_change_support, band, o.light_change_colour, len(drop))
+    log.info("%s%d of %d changed objects of the ID comparison changed in 3D (>= %.0f %% of "
+             "their pixels within %d px of the 3D evidence) or in colour (by >= %.2f, relative "
+             "to their surroundings) and are kept; %d IDs dropped",
+             "change of light: " if light_changed else "",
+             n - len(np.unique(df.loc[drop, "instance"])), n, 100 * o.confirm_support, band,
+             o.confirm_colour, len(drop))
     df.loc[drop, "changed"] = False
     df.loc[drop, "type"] = ""
     df.loc[drop, "instance"] = 0

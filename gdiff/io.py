@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import contextlib
 import json
+import logging
 import os
 import shutil
 import tempfile
@@ -24,6 +25,11 @@ import cv2
 import numpy as np
 
 from .errors import SceneError
+
+log = logging.getLogger("gdiff.io")
+
+# marks the temporary files of atomic_path: ".<stem>.<random>.tmp<ext>" next to the target
+_TMP = ".tmp"
 
 IMAGE_EXTENSIONS = (".png", ".jpg", ".jpeg", ".PNG", ".JPG", ".JPEG")
 
@@ -64,7 +70,7 @@ def atomic_path(path: str | os.PathLike, suffix: str | None = None) -> Iterator[
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     suffix = suffix if suffix is not None else "".join(path.suffixes[-1:])
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=".tmp" + suffix, dir=path.parent)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=_TMP + suffix, dir=path.parent)
     os.close(fd)
     tmp = Path(tmp)
     try:
@@ -77,15 +83,17 @@ def atomic_path(path: str | os.PathLike, suffix: str | None = None) -> Iterator[
 
 
 def remove_stale_temporaries(folder: str | os.PathLike) -> list[Path]:
-    """Delete the temporary files that ``atomic_path`` left in ``folder`` when its process was
-    killed mid-write (SIGKILL, power loss: no ``except`` ran). Call it where a stage reopens a
-    folder it owns, such as its checkpoint folder on resume. Returns the removed paths."""
+    """Delete (and log) the temporary files that ``atomic_path`` left in ``folder`` when its
+    process was killed mid-write (SIGKILL, power loss: no ``except`` ran). Call it where a stage
+    reopens a folder it owns, such as its checkpoint folder on resume. Returns the removed
+    paths."""
     folder = Path(folder)
     if not folder.is_dir():
         return []
-    stale = sorted(p for p in folder.glob(".*.tmp*") if p.is_file())
+    stale = sorted(p for p in folder.glob(f".*{_TMP}*") if p.is_file())
     for p in stale:
         p.unlink(missing_ok=True)
+        log.info("removed %s, left by an interrupted write", p)
     return stale
 
 

@@ -108,15 +108,15 @@ def compare_paths(ids: dict[Key, np.ndarray], frames: dict[Key, dict] | None,
     g_geo = geo.finish() if geo is not None else None
     g_flat = flat.finish(max_rate=o.flat_max_rate) if flat is not None else None
     band = max(1, int(round(2 * o.geometry_voxel_px)))
-    if g_flat is not None and g_flat["rejected"]:  # said first: the rule below depends on it
+    light_changed = g_flat is not None and g_flat["rejected"]
+    if light_changed:  # said first: the rules below depend on it
         log.info("flat changes: appearance changed on %.1f %% of the surfaces judged (more "
                  "than compare.flat_max_rate = %.1f %%): taken as a change of light, nothing "
                  "marked", 100 * g_flat["rate"], 100 * o.flat_max_rate)
     if geo is not None:
-        trusted = [geo] + ([flat] if g_flat is not None and not g_flat["rejected"] else [])
-        _support_3d(df, ids, trusted, band)
+        _support_3d(df, ids, [geo] + ([flat] if flat is not None and not light_changed else []),
+                    band)
         if o.confirm_support > 0:
-            light_changed = g_flat is not None and g_flat["rejected"]
             _confirm_by_evidence(df, o, band, light_changed)
     else:
         df["support"] = np.nan

@@ -93,8 +93,7 @@ def _tv_loss(pm: PartitionModel, lambda_tv: float | None) -> torch.Tensor:
 
 
 def _latest_checkpoint(ckdir):
-    for p in remove_stale_temporaries(ckdir):
-        log.info("removed %s, left by an interrupted checkpoint write", p)
+    remove_stale_temporaries(ckdir)
     files = sorted(Path(ckdir).glob("ckpt_*.pt"))
     return files[-1] if files else None
 

@@ -628,8 +628,7 @@ def fit_scene(scene_dir: str | Path, cameras_json: str | Path, points_ply: str |
     fingerprint = _fingerprint(Path(cameras_json), Path(points_ply))
     key = _options_key(opts)
     resumed = 0
-    for p in remove_stale_temporaries(ckpt.parent):
-        log.info("removed %s, left by an interrupted checkpoint write", p)
+    remove_stale_temporaries(ckpt.parent)
     if ckpt.is_file():
         try:
             st = torch.load(ckpt, map_location="cpu", weights_only=True)

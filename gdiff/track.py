@@ -20,7 +20,8 @@ associates. For every frame in chain order:
    fooled by a lighting change. Sources at the other time and another pose are not used when
    the frames carry their time (IDs cross times only where the two times are pixel-aligned).
 3. *Merge*: predicted masks and current segments are paired by mask IoU with the Hungarian
-   algorithm (gate ``iou_gate``); unmatched segments start new tracks (IDs are never reused);
+   algorithm (gate ``iou_gate``); unmatched segments start new tracks (IDs are never reused; the tracks that remain at the
+   end are renumbered 1..K);
    tracks unseen for more than ``max_missed`` frames are dropped (they may still be re-found by
    the same-pose link, which is re-identification of the same object).
 4. *Vote* (``vote_window``): tracks seen in fewer than half of the first ``vote_window`` frames
@@ -282,15 +283,16 @@ def _time_of(fr: TrackFrame) -> float | None:
     return None if fr.time is None else float(fr.time)
 
 
-def track_sequence(frames: list[TrackFrame], options: TrackOptions | None = None,
-                   first_id: int = 1) -> TrackResult:
+def track_sequence(frames: list[TrackFrame], options: TrackOptions | None = None
+                   ) -> TrackResult:
     """Track ``frames`` (in chain order) and return one shared-ID map per frame.
 
-    See the module docstring for the algorithm. ``first_id`` is the first new ID handed out.
+    See the module docstring for the algorithm. The tracks that survive voting and merging
+    are numbered 1..K in the order they first appeared (0 = no instance).
     """
     o = options or TrackOptions()
     out: list[np.ndarray] = []
-    next_id = first_id
+    next_id = 1
     last_seen: dict[int, int] = {}  # track id -> chain index of its last observation
     seen_at: dict[int, list[int]] = {}  # track id -> chain indices where observed
     areas: dict[int, int] = {}
@@ -405,9 +407,14 @@ def track_sequence(frames: list[TrackFrame], options: TrackOptions | None = None
                 if a in seen_at:
                     seen_at[b] = sorted(seen_at.get(b, []) + seen_at.pop(a))
                     areas[b] = areas.get(b, 0) + areas.pop(a, 0)
-    rows = [dict(id=t, first=ks[0], last=ks[-1], n_frames=len(ks),
-                 mean_area=areas[t] / len(ks)) for t, ks in sorted(seen_at.items())
-            if t not in removed]
+    # surviving tracks renumbered 1..K in their order (the tracker hands out a new ID to every
+    # unmatched segment, so on long sequences raw IDs run far beyond the tracks that remain)
+    keep = sorted(t for t in seen_at if t not in removed)
+    lut = np.zeros(max(next_id, 1), dtype=np.int32)
+    lut[keep] = np.arange(1, len(keep) + 1, dtype=np.int32)
+    out = [lut[m] for m in out]
+    rows = [dict(id=int(lut[t]), first=seen_at[t][0], last=seen_at[t][-1],
+                 n_frames=len(seen_at[t]), mean_area=areas[t] / len(seen_at[t])) for t in keep]
     log.info("tracked %d frames: %d tracks (%d removed by voting, %d merged by 3D position, "
              "%d cross-time links broken by appearance)", n, len(rows), len(removed),
              len(merged), n_broken)

@@ -14,6 +14,7 @@ from gdiff.compare import (CompareOptions, change_masks, compare, compare_paths,
 from gdiff.errors import SceneError
 from gdiff.io import read_ids, read_image, read_mask, srgb_to_linear
 from gdiff.segment import SegmentOptions, make_segmenter, segment_and_track, track_paths
+from gdiff.segment import stage as seg_stage
 from gdiff.track import TrackOptions, world_points
 
 H, W = 40, 60
@@ -118,7 +119,7 @@ def _write_exr(path, rgb_srgb, depth):
                  ch).write(str(path))
 
 
-def test_stage_files(demo_paths, tmp_path):
+def test_stage_files(demo_paths, tmp_path, monkeypatch):
     scene, frames, _ = demo_paths
     n = 4
     cam0 = frames[("p1", "t0", 0)]["camera"]
@@ -140,7 +141,13 @@ def test_stage_files(demo_paths, tmp_path):
     ids = read_ids(res / "instances" / "p1" / "t1" / "00002.png")
     assert ids.shape == (cam0.height, cam0.width) and ids.max() > 0
     assert not (res / "instances" / "overlay").exists()  # debug overlays are opt-in
-    assert set(pd.read_csv(res / "instances" / "tracks.csv").columns) >= {"id", "first", "last"}
+    tracks = pd.read_csv(res / "instances" / "tracks.csv")
+    assert set(tracks.columns) >= {"id", "first", "last"}
+    # the tracks that remain are numbered 1..K, and the ID maps hold no other IDs
+    assert list(tracks["id"]) == list(range(1, len(tracks) + 1))
+    used = set().union(*(np.unique(read_ids(f)).tolist()
+                         for f in (res / "instances").rglob("*.png")))
+    assert used - {0} == set(tracks["id"])
     summary = compare(res / "instances", res / "sequence" / "poses.json", res / "change",
                       CompareOptions())
     assert summary["changed"] >= 1
@@ -163,6 +170,18 @@ def test_stage_files(demo_paths, tmp_path):
     segment_and_track(res / "render", res / "sequence" / "poses.json", inst2, SegmentOptions(),
                       TrackOptions())
     assert not (inst2 / "overlay").exists()
+    # more tracks than a 16-bit ID map holds: a clear error before anything is written
+    real = seg_stage.track_paths
+
+    def too_many(*a, **k):
+        ids, tr = real(*a, **k)
+        return ids, pd.DataFrame({"id": np.arange(1, 70_001)})
+
+    monkeypatch.setattr(seg_stage, "track_paths", too_many)
+    with pytest.raises(SceneError, match="70000 instance tracks.*65535"):
+        segment_and_track(res / "render", res / "sequence" / "poses.json", res / "inst3",
+                          SegmentOptions(), TrackOptions())
+    assert not (res / "inst3").exists()
 
 
 # ------------------------------------------------------------------------------------------

@@ -18,7 +18,7 @@ from gdiff.options import from_config
 from gdiff.sfm import (PosesOptions, discover_images, extraction_scale, proximity_pairs,
                        read_cameras_file, refine_model, run_poses, sequential_pairs,
                        set_from_path)
-from gdiff.sfm.colmap import _extract, _mapper_options, _read_descriptors
+from gdiff.sfm.colmap import _extract, _mapper_options, _read_descriptors, core_images
 from gdiff.sfm.pairs import retrieval_pairs, word_histograms
 from gdiff.splat.ply import read_points
 
@@ -352,6 +352,37 @@ def test_word_histograms_rank_images_of_one_place_first():
     # capture-order neighbours are added on top
     with_order = retrieval_pairs([names], dict(zip(names, v)), neighbours=4, overlap=1)
     assert ("before/004.png", "before/005.png") in with_order
+
+
+def test_core_images_spread_over_every_set():
+    images = [(f"b{i:02d}", "before") for i in range(40)] + \
+        [(f"a{i:02d}", "after") for i in range(40)] + [("e0", "eval_before"), ("e1", "eval_after")]
+    assert core_images(images, None) == [n for n, _ in images]
+    assert core_images(images, 82) == [n for n, _ in images]
+    core = core_images(images, 20)
+    b = [n for n in core if n.startswith("b")]
+    a = [n for n in core if n.startswith("a")]
+    assert len(b) == len(a) == 10 and {"e0", "e1"} <= set(core)  # small sets are kept
+    assert b[0] == "b00" and b[-1] == "b39"  # the whole capture path
+    steps = np.diff([int(n[1:]) for n in b])
+    assert steps.min() >= 4 and steps.max() <= 5
+    assert core == [n for n, _ in images if n in set(core)]  # input order
+
+
+def test_images_beyond_the_mapped_core_are_registered_to_it(synth_tiny_dir, gt_tiny,
+                                                            tmp_path):
+    # 18 of the 26 images are mapped, the other 8 registered one by one to that model
+    summary = run_poses(synth_tiny_dir, tmp_path / "p",
+                        PosesOptions(map_max_images=18, num_threads=2))
+    assert summary["mapped_images"] == 18
+    assert summary["registered"] == summary["images"]
+    cams = load_cameras(tmp_path / "p" / "cameras.json")
+    err = pose_errors(cams, gt_tiny)
+    assert len(err) == 26
+    assert err.rot_err_deg.median() < 2.0 and err.center_err_frac.median() < 0.05
+    core = set(core_images(discover_images(synth_tiny_dir), 18))
+    rest = err[~err["image"].isin(core)]
+    assert len(rest) == 8 and rest.rot_err_deg.max() < 5.0
 
 
 def test_retrieval_matching_on_real_features(synth_tiny_dir, gt_tiny, tmp_path):

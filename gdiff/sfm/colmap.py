@@ -185,8 +185,10 @@ def refine_model(rec, max_error: float, iterations: int, refine_principal_point:
     # sets 0, so every round ran its 100 iterations long after the cameras stopped moving)
     bo.ceres.solver_options.function_tolerance = 1e-6
     removed = 0
+    level = pycolmap.logging.minloglevel
     for _ in range(iterations):
         pycolmap.bundle_adjustment(rec, bo)
+        pycolmap.logging.minloglevel = level  # bundle_adjustment leaves it at INFO
         removed += int(pycolmap.ObservationManager(rec).filter_all_points3D(max_error, 1.5))
     rec.update_point_3d_errors()
     after = float(rec.compute_mean_reprojection_error())
@@ -274,7 +276,13 @@ def _run_colmap(root: Path, work: Path, images, sizes, opts: PosesOptions):
     stats = _db_stats(db, opts.min_num_matches)
     log.info("features: %.0f keypoints per image; %d image pairs with >= %d verified matches",
              stats["mean_keypoints"], stats["verified_pairs"], opts.min_num_matches)
-    models, attempts = _map_best(db, root, work, opts, len(names), scale)
+    core = core_images(images, opts.map_max_images)
+    if len(core) < len(names):
+        log.info("mapping: %d of %d images spread over the sets; the other %d are registered "
+                 "to that model one by one (poses.map_max_images)", len(core), len(names),
+                 len(names) - len(core))
+    models, attempts = _map_best(db, root, work, opts, core if len(core) < len(names) else None,
+                                 len(core), scale)
     if not models or models[0].num_reg_images() < 2:
         raise PosesError(
             f"{root}: COLMAP could not register the images ({stats['verified_pairs']} verified "
@@ -295,11 +303,18 @@ def _run_colmap(root: Path, work: Path, images, sizes, opts: PosesOptions):
             if only:
                 log.warning("model %d holds images missing from the largest: %s", k,
                             ", ".join(only))
+    refine = refine_model(rec, opts.max_reproj_error * scale, opts.refine_iterations,
+                          opts.refine_principal_point, opts.colmap_threads())
+    if len(core) < len(names):  # the others, and any the mapper left out
+        mapped = {rec.images[i].name for i in rec.reg_image_ids()}
+        rest = [n for n in names if n not in mapped]
+        failed = register_rest(db, rec, rest, opts, scale)
+        log.info("registered %d of the %d images outside the mapped model%s",
+                 len(rest) - len(failed), len(rest),
+                 f" (not: {', '.join(failed)})" if failed else "")
     by_name = {rec.images[i].name: rec.images[i] for i in rec.reg_image_ids()}
     dropped = _check_unregistered(images, set(by_name), opts.max_unregistered_fraction,
                                   f"COLMAP registration of {root}")
-    refine = refine_model(rec, opts.max_reproj_error * scale, opts.refine_iterations,
-                          opts.refine_principal_point, opts.colmap_threads())
     cams = []
     for n, st in images:
         if n in dropped:
@@ -311,11 +326,85 @@ def _run_colmap(root: Path, work: Path, images, sizes, opts: PosesOptions):
     summary = {"source": "colmap", "matcher": matcher, "images": _count(images),
                "registered": _count(images, set(by_name)), "dropped": dropped,
                "num_models": len(models), "mapper_attempts": attempts,
+               "mapped_images": len(core),
                "num_points": int(rec.num_points3D()),
                "mean_reprojection_error": float(rec.compute_mean_reprojection_error()),
                "refinement": refine, "undistorted": any(c.dist is not None for c in cams),
                "resampled": not shares_one_camera(cams)}
     return cams, rec, summary, None
+
+
+def core_images(images: list[tuple[str, str]], max_images: int | None) -> list[str]:
+    """The images mapped incrementally when a scene has more than ``max_images`` of them.
+
+    Each set keeps its share of ``max_images`` (at least two images), spread evenly over its
+    capture order, so every set and every part of a capture path stays in the mapped model;
+    the other images are then registered to it one by one (:func:`register_rest`).
+
+    Args:
+        images: ``(name, set)`` pairs in capture order within each set.
+        max_images: the most images to map (None or >= the image count: all of them).
+
+    Returns:
+        The names of the core images, in the order of ``images``.
+    """
+    names = [n for n, _ in images]
+    if max_images is None or len(names) <= max_images:
+        return names
+    sets: dict[str, list[str]] = {}
+    for n, st in images:
+        sets.setdefault(st, []).append(n)
+    keep: set[str] = set()
+    for members in sets.values():
+        share = max(2, round(max_images * len(members) / len(names)))
+        if share >= len(members):
+            keep.update(members)
+            continue
+        picks = np.unique(np.round(np.linspace(0, len(members) - 1, share)).astype(int))
+        keep.update(members[i] for i in picks)
+    return [n for n in names if n in keep]
+
+
+def register_rest(db: Path, rec, names: list[str], opts: PosesOptions, scale: float) -> list[str]:
+    """Register each image of ``names`` to the model ``rec`` on its own, in place: 2D-3D
+    correspondences through its verified matches with the registered images, absolute pose by
+    RANSAC, then refinement of that one pose (COLMAP's ``IncrementalMapper``); its matches
+    with the registered images are then triangulated into new points. The model's points and
+    the other cameras do not move (no bundle adjustment), so the cost per image does not grow
+    with the number of images. Images that fail are tried once more after the others.
+
+    Returns:
+        The names that could not be registered.
+    """
+    import pycolmap
+
+    database = pycolmap.Database.open(str(db))
+    try:
+        co = pycolmap.DatabaseCacheOptions()
+        co.min_num_matches = opts.min_num_matches
+        cache = pycolmap.DatabaseCache.create(database, co)
+    finally:
+        database.close()
+    mapper = pycolmap.IncrementalMapper(cache)
+    mapper.begin_reconstruction(rec)
+    mp = _mapper_options(opts, 0, scale)
+    ids = {cache.image(i).name: i for i in cache.images}
+    todo = [n for n in names if n in ids]
+    for _ in range(2):
+        failed = []
+        for n in todo:
+            if mapper.register_next_image(mp.mapper, ids[n]):
+                # its matches with registered images become points too, so the images
+                # registered after it find more 2D-3D correspondences
+                mapper.triangulate_image(mp.triangulation, ids[n])
+            else:
+                failed.append(n)
+        if len(failed) in (0, len(todo)):
+            todo = failed
+            break
+        todo = failed
+    mapper.end_reconstruction(False)
+    return todo + [n for n in names if n not in ids]
 
 
 def _model_key(rec) -> tuple[int, float]:
@@ -324,9 +413,10 @@ def _model_key(rec) -> tuple[int, float]:
     return rec.num_reg_images(), -float(rec.compute_mean_reprojection_error())
 
 
-def _map_best(db: Path, root: Path, work: Path, opts: PosesOptions, n_images: int,
-              scale: float) -> tuple[list, int]:
-    """Incremental mapping, repeated with the next seed and a looser threshold (run k:
+def _map_best(db: Path, root: Path, work: Path, opts: PosesOptions, only: list[str] | None,
+              n_images: int, scale: float) -> tuple[list, int]:
+    """Incremental mapping of the ``n_images`` images (only those named in ``only``, or all
+    of the database), repeated with the next seed and a looser threshold (run k:
     ``seed + k``, ``(k + 1) * max_reproj_error``; up to ``opts.mapper_attempts`` runs) while
     the best model leaves images unregistered.
 
@@ -341,9 +431,10 @@ def _map_best(db: Path, root: Path, work: Path, opts: PosesOptions, n_images: in
     for k in range(opts.mapper_attempts):
         seed = opts.seed + k
         pycolmap.set_random_seed(seed)
-        recs = pycolmap.incremental_mapping(
-            db, root, work / f"mapper{k}",
-            options=_mapper_options(opts, n_images, scale, seed=seed, relax=k + 1.0))
+        mp = _mapper_options(opts, n_images, scale, seed=seed, relax=k + 1.0)
+        if only is not None:
+            mp.image_names = list(only)
+        recs = pycolmap.incremental_mapping(db, root, work / f"mapper{k}", options=mp)
         attempts += 1
         models = sorted(recs.values(), key=_model_key, reverse=True)
         if models and (not best or _model_key(models[0]) > _model_key(best[0])):

@@ -59,6 +59,11 @@ class PosesOptions:
         refine_iterations: rounds of the final global refinement (bundle adjustment of all
             cameras, shared intrinsics and points with a Cauchy loss, then removal of
             observations beyond ``max_reproj_error``); 0 keeps the mapper's model as is.
+        map_max_images: scenes with more images than this map a core of this many, spread
+            evenly over each set's capture order, and register each other image to that model
+            on its own (absolute pose + refinement of that pose): incremental mapping costs
+            more than linearly in the image count (every point is seen by more images as views
+            get denser), registration per image does not. None maps all images.
         mapper_attempts: incremental mapping runs tried while the best model so far leaves
             images unregistered. Run k (from 0) uses seed ``seed + k`` and mapper thresholds
             ``(k + 1) * max_reproj_error``: a strict threshold keeps mapping accurate, a looser
@@ -103,6 +108,7 @@ class PosesOptions:
     min_num_matches: int = 15
     max_reproj_error: float = 2.0
     refine_iterations: int = 3
+    map_max_images: int | None = 80
     mapper_attempts: int = 3
     refine_principal_point: bool = False
     min_points_per_image: int = 10
@@ -135,6 +141,8 @@ class PosesOptions:
                              ">= 1")
         if self.resample_max_side < 0:
             raise ValueError("resample_max_side must be >= 0 (pixels; 0 = no cap)")
+        if self.map_max_images is not None and self.map_max_images < 10:
+            raise ValueError("map_max_images must be >= 10 (or null: map all images)")
         if self.refine_iterations < 0 or self.mapper_attempts < 1:
             raise ValueError("refine_iterations must be >= 0 and mapper_attempts >= 1")
 

@@ -56,7 +56,9 @@ def run_poses(scene_dir: str | os.PathLike, out_dir: str | os.PathLike,
         to COLMAP as upright copies, see :mod:`gdiff.sfm.upright`), ``image_dir`` (the folder
         of the photos to use, relative to ``out_dir``, or None for the scene's own),
         ``mean_reprojection_error`` (pixels), ``seconds``; for COLMAP also
-        ``mapper_attempts`` and ``refinement`` (see :func:`refine_model`).
+        ``mapper_attempts``, ``mapped_images`` (images mapped incrementally; the others
+        were registered to that model, see ``PosesOptions.map_max_images``) and
+        ``refinement`` (see :func:`refine_model`).
 
     Raises:
         PosesError: registration failed, or a set lost too many images.

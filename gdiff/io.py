@@ -220,11 +220,15 @@ def read_ids(path: str | os.PathLike) -> np.ndarray:
     return m.astype(np.int64)
 
 
+#: the largest instance ID an ID map (16-bit PNG) holds
+MAX_ID = 65535
+
+
 def write_ids(path: str | os.PathLike, ids: np.ndarray) -> None:
     """Write an instance-ID map [H, W] as a 16-bit PNG (0 = no instance), atomically."""
     ids = np.asarray(ids)
-    if ids.max(initial=0) > 65535 or ids.min(initial=0) < 0:
-        raise ValueError("instance IDs must lie in [0, 65535]")
+    if ids.max(initial=0) > MAX_ID or ids.min(initial=0) < 0:
+        raise ValueError(f"instance IDs must lie in [0, {MAX_ID}]")
     with atomic_path(path) as tmp:
         if not cv2.imwrite(str(tmp), ids.astype(np.uint16)):
             raise OSError(f"could not write ID map {path}")

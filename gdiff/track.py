@@ -20,8 +20,8 @@ associates. For every frame in chain order:
    fooled by a lighting change. Sources at the other time and another pose are not used when
    the frames carry their time (IDs cross times only where the two times are pixel-aligned).
 3. *Merge*: predicted masks and current segments are paired by mask IoU with the Hungarian
-   algorithm (gate ``iou_gate``); unmatched segments start new tracks (IDs are never reused; the tracks that remain at the
-   end are renumbered 1..K);
+   algorithm (gate ``iou_gate``); unmatched segments start new tracks (IDs are never reused;
+   the tracks that remain at the end are renumbered 1..K);
    tracks unseen for more than ``max_missed`` frames are dropped (they may still be re-found by
    the same-pose link, which is re-identification of the same object).
 4. *Vote* (``vote_window``): tracks seen in fewer than half of the first ``vote_window`` frames
@@ -381,6 +381,9 @@ def track_sequence(frames: list[TrackFrame], options: TrackOptions | None = None
             for t, rec in frame_positions(ids, fr).items():
                 positions.setdefault(t, {}).setdefault(float(fr.time), []).append(rec)
     n = len(frames)
+    # raw ID -> final ID: voting, merging and renumbering are composed here and the ID maps
+    # are relabelled once, at the end
+    lut = np.arange(max(next_id, 1), dtype=np.int32)
     removed = set()
     if o.vote_window > 0:
         for t, ks in seen_at.items():
@@ -388,9 +391,7 @@ def track_sequence(frames: list[TrackFrame], options: TrackOptions | None = None
             need = math.ceil(window / 2)
             if sum(1 for x in ks if x < ks[0] + o.vote_window) < need:
                 removed.add(t)
-        if removed:
-            rm = np.array(sorted(removed))
-            out = [np.where(np.isin(m, rm), 0, m).astype(np.int32) for m in out]
+        lut[sorted(removed)] = 0
     merged = {}
     if o.merge_3d:
         # positions were gathered frame by frame during tracking (frames need not stay in
@@ -399,10 +400,8 @@ def track_sequence(frames: list[TrackFrame], options: TrackOptions | None = None
         merged = merge_positions(pos, {t: set(ks) for t, ks in seen_at.items()
                                        if t not in removed}, o.merge_dist_frac)
         if merged:
-            lut = np.arange(max(next_id, 1), dtype=np.int32)
             for a, b in merged.items():
                 lut[a] = b
-            out = [lut[m] for m in out]
             for a, b in merged.items():
                 if a in seen_at:
                     seen_at[b] = sorted(seen_at.get(b, []) + seen_at.pop(a))
@@ -410,10 +409,11 @@ def track_sequence(frames: list[TrackFrame], options: TrackOptions | None = None
     # surviving tracks renumbered 1..K in their order (the tracker hands out a new ID to every
     # unmatched segment, so on long sequences raw IDs run far beyond the tracks that remain)
     keep = sorted(t for t in seen_at if t not in removed)
-    lut = np.zeros(max(next_id, 1), dtype=np.int32)
-    lut[keep] = np.arange(1, len(keep) + 1, dtype=np.int32)
+    number = np.zeros(len(lut), dtype=np.int32)
+    number[keep] = np.arange(1, len(keep) + 1, dtype=np.int32)
+    lut = number[lut]
     out = [lut[m] for m in out]
-    rows = [dict(id=int(lut[t]), first=seen_at[t][0], last=seen_at[t][-1],
+    rows = [dict(id=int(number[t]), first=seen_at[t][0], last=seen_at[t][-1],
                  n_frames=len(seen_at[t]), mean_area=areas[t] / len(seen_at[t])) for t in keep]
     log.info("tracked %d frames: %d tracks (%d removed by voting, %d merged by 3D position, "
              "%d cross-time links broken by appearance)", n, len(rows), len(removed),

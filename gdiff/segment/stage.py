@@ -21,7 +21,7 @@ import pandas as pd
 
 from ..errors import SceneError
 from ..frames import TIMES, Key, read_frame, read_sequence, render_files
-from ..io import write_csv, write_ids, write_image, write_json
+from ..io import MAX_ID, write_csv, write_ids, write_image, write_json
 from ..log import progress
 from ..track import TrackFrame, TrackOptions, chain_order, labels_from_instances, track_sequence
 from .base import Segmenter, SegmentOptions, make_segmenter
@@ -151,12 +151,12 @@ def segment_and_track(render_dir, poses_json, out_dir, options: SegmentOptions |
 
     # frames are read on demand (all of them at once would not fit in memory on long paths)
     ids, tracks = track_paths((list(files), load), seg, track_options)
-    if len(tracks) > 65535:  # checked before anything is written
+    if len(tracks) > MAX_ID:  # checked before anything is written
         raise SceneError(
             f"{render_dir}: {len(tracks)} instance tracks over {len(ids)} frames, more than the "
-            "65535 IDs a 16-bit ID map holds. Render fewer frames (larger interpolate.max_angle_deg "
-            "and interpolate.max_step) or raise segment.min_region_area so fewer small "
-            "segments are kept.")
+            f"{MAX_ID} IDs a 16-bit ID map holds. Render fewer frames (larger "
+            "interpolate.max_angle_deg and interpolate.max_step) or raise "
+            "segment.min_region_area so fewer small segments are kept.")
     index = {"render_dir": os.path.relpath(render_dir, out_dir), "frames": []}
     if not options.overlays and (out_dir / "overlay").is_dir():
         shutil.rmtree(out_dir / "overlay")  # from an earlier run with overlays on

@@ -277,12 +277,13 @@ def _run_colmap(root: Path, work: Path, images, sizes, opts: PosesOptions):
     log.info("features: %.0f keypoints per image; %d image pairs with >= %d verified matches",
              stats["mean_keypoints"], stats["verified_pairs"], opts.min_num_matches)
     core = core_images(images, opts.map_max_images)
-    if len(core) < len(names):
+    partial = len(core) < len(names)
+    if partial:
         log.info("mapping: %d of %d images spread over the sets; the other %d are registered "
                  "to that model one by one (poses.map_max_images)", len(core), len(names),
                  len(names) - len(core))
-    models, attempts = _map_best(db, root, work, opts, core if len(core) < len(names) else None,
-                                 len(core), scale)
+    models, attempts = _map_best(db, root, work, opts, core if partial else None, len(core),
+                                 scale)
     if not models or models[0].num_reg_images() < 2:
         raise PosesError(
             f"{root}: COLMAP could not register the images ({stats['verified_pairs']} verified "
@@ -305,7 +306,7 @@ def _run_colmap(root: Path, work: Path, images, sizes, opts: PosesOptions):
                             ", ".join(only))
     refine = refine_model(rec, opts.max_reproj_error * scale, opts.refine_iterations,
                           opts.refine_principal_point, opts.colmap_threads())
-    if len(core) < len(names):  # the others, and any the mapper left out
+    if partial:  # the others, and any the mapper left out
         mapped = {rec.images[i].name for i in rec.reg_image_ids()}
         rest = [n for n in names if n not in mapped]
         failed = register_rest(db, rec, rest, opts, scale)
@@ -389,20 +390,20 @@ def register_rest(db: Path, rec, names: list[str], opts: PosesOptions, scale: fl
     mapper.begin_reconstruction(rec)
     mp = _mapper_options(opts, 0, scale)
     ids = {cache.image(i).name: i for i in cache.images}
+    def register(name: str) -> bool:
+        if not mapper.register_next_image(mp.mapper, ids[name]):
+            return False
+        # its matches with registered images become points too, so the images registered
+        # after it find more 2D-3D correspondences
+        mapper.triangulate_image(mp.triangulation, ids[name])
+        return True
+
     todo = [n for n in names if n in ids]
-    for _ in range(2):
-        failed = []
-        for n in todo:
-            if mapper.register_next_image(mp.mapper, ids[n]):
-                # its matches with registered images become points too, so the images
-                # registered after it find more 2D-3D correspondences
-                mapper.triangulate_image(mp.triangulation, ids[n])
-            else:
-                failed.append(n)
-        if len(failed) in (0, len(todo)):
-            todo = failed
+    for _ in range(2):  # a second pass only if the first registered some
+        before = len(todo)
+        todo = [n for n in todo if not register(n)]
+        if len(todo) in (0, before):
             break
-        todo = failed
     mapper.end_reconstruction(False)
     return todo + [n for n in names if n not in ids]
 

@@ -25,7 +25,11 @@ associates. For every frame in chain order:
    tracks unseen for more than ``max_missed`` frames are dropped (they may still be re-found by
    the same-pose link, which is re-identification of the same object).
 4. *Vote* (``vote_window``): tracks seen in fewer than half of the first ``vote_window`` frames
-   after their birth are flicker; their pixels are set to 0 (no instance).
+   after their birth are flicker; their pixels are set to 0 (no instance). A track seen at a
+   *key* frame (``TrackFrame.key``: the pose of a training photo, rendered at that photo's
+   time) is kept whatever the vote: there the render reproduces a photo, so its segments are
+   as reliable as the segmenter, while a sparse capture's renders between photos can be too
+   blurred to carry an object to the next frames.
 5. *Merge by 3D position* (``merge_3d``, frames with depth, cameras and time): two tracks
    that never share a frame, are seen at the same times and sit at the same place in the world
    (their median 3D points closer than ``merge_dist_frac`` x their size at every time both are
@@ -123,6 +127,7 @@ class TrackFrame:
         times share it. None = no same-pose partner.
     name: free label for logs and tables (e.g. ("p1", "t0", 7)).
     time: 0 (before) or 1 (after), or None when unknown.
+    key: the frame is the pose of a training photo of its own time (its tracks skip the vote).
     """
 
     labels: np.ndarray
@@ -132,6 +137,7 @@ class TrackFrame:
     pose_key: Hashable | None = None
     name: Hashable | None = None
     time: float | None = None
+    key: bool = False
 
 
 @dataclass
@@ -295,6 +301,7 @@ def track_sequence(frames: list[TrackFrame], options: TrackOptions | None = None
     next_id = 1
     last_seen: dict[int, int] = {}  # track id -> chain index of its last observation
     seen_at: dict[int, list[int]] = {}  # track id -> chain indices where observed
+    at_key: set[int] = set()  # tracks seen at a key frame (kept whatever the vote)
     areas: dict[int, int] = {}
     done_by_pose: dict[Hashable, int] = {}
     grads: dict[int, Texture] = {}
@@ -370,6 +377,8 @@ def track_sequence(frames: list[TrackFrame], options: TrackOptions | None = None
         for s, t in assign.items():
             last_seen[t] = k
             seen_at.setdefault(t, []).append(k)
+            if fr.key:
+                at_key.add(t)
             areas[t] = areas.get(t, 0) + int((labels == s).sum())
         if fr.pose_key is not None:
             done_by_pose[fr.pose_key] = k
@@ -389,7 +398,7 @@ def track_sequence(frames: list[TrackFrame], options: TrackOptions | None = None
         for t, ks in seen_at.items():
             window = min(o.vote_window, n - ks[0])
             need = math.ceil(window / 2)
-            if sum(1 for x in ks if x < ks[0] + o.vote_window) < need:
+            if t not in at_key and sum(1 for x in ks if x < ks[0] + o.vote_window) < need:
                 removed.add(t)
         lut[sorted(removed)] = 0
     merged = {}

@@ -357,6 +357,10 @@ def test_view_count_respects_frustum_and_occlusion():
     wide = observed(plane, cam, views, 0.05, min_views=2, min_parallax=30.0)
     narrow = observed(plane, cam, views, 0.05, min_views=2, min_parallax=45.0)
     assert wide[H // 2, W // 2 + 5] and not narrow.any()
+    # seen: one view is enough (the photo shows the surface, its depth is not determined)
+    det, shown = observed(plane, cam, views, 0.05, min_views=2, min_parallax=45.0, seen=True)
+    assert not det.any() and (shown == observed(plane, cam, views, 0.05)).all()
+    assert shown[H // 2, W // 2]
 
 
 def test_nearest_views_bound_the_work_but_not_the_result():
@@ -603,6 +607,44 @@ def test_flat_object_removed_from_or_added_to_a_staying_surface_is_a_change():
     assert st[2]["confirmed"] and not st[3]["confirmed"] and not st[5]["confirmed"]
     df = decide([("pose", st)], o).set_index("id")
     assert df.at[2, "changed"] and df.at[2, "type"] == "added"
+
+
+def test_object_one_photo_shows_is_judged_by_appearance_not_by_its_depth():
+    """A sparse capture: one after photo shows cups put on a chair's seat. Seen from one
+    direction only, their depth is undetermined, and the fit put them behind the seat, so the
+    rendered depth says the seat at t0 hides them. Where the photos of both times show the
+    surface but its depth is not determined, the cups are judged by their appearance and
+    found; a patch of the seat cut differently at t1 (same texture) is not a change; where
+    no photo showed the surface at one time nothing is judged."""
+    rng = np.random.default_rng(5)
+    o = CompareOptions(min_area=4)
+    seat = np.clip(np.array([0.8, 0.78, 0.75], np.float32)
+                   * (0.8 + 0.3 * _smooth_texture(rng, (H, W), 1.5)), 0, 1)
+    rgb0, rgb1 = seat.copy(), seat.copy()
+    ids0 = np.ones((H, W), np.int64)
+    ids1 = ids0.copy()
+    cups = np.clip(np.array([0.9, 0.8, 0.1], np.float32)
+                   * (0.7 + 0.4 * _smooth_texture(rng, (10, 12), 1.0)), 0, 1)
+    rgb1[10:20, 10:22], ids1[10:20, 10:22] = cups, 2
+    ids1[26:36, 40:52] = 3  # the seat re-cut at t1
+    z0 = np.full((H, W), 2.0, np.float32)
+    z1 = z0.copy()
+    z1[10:20, 10:22] = 3.0  # the cups' depth, wrong: behind the seat
+    none, every = np.zeros((H, W), bool), np.ones((H, W), bool)
+    st = pose_stats(ids0, ids1, o, rgb0, rgb1, z0, z1, observed0=none, observed1=none,
+                    seen0=every, seen1=every)
+    assert st[2]["candidate"] and st[2]["confirmed"], st[2]
+    assert np.isnan(st[2]["evidence"])  # no depth evidence where the depth is not trusted
+    assert not st[3]["confirmed"], st[3]
+    df = decide([("pose", st)], o).set_index("id")
+    assert df.at[2, "changed"] and df.at[2, "type"] == "added" and not df.at[3, "changed"]
+    # with the depth trusted, the seat at t0 hides the cups: undecidable at this pose
+    trusted = pose_stats(ids0, ids1, o, rgb0, rgb1, z0, z1, observed0=every, observed1=every)
+    assert not trusted[2]["candidate"]
+    # not shown by a photo of t0: nothing judged
+    st = pose_stats(ids0, ids1, o, rgb0, rgb1, z0, z1, observed0=none, observed1=none,
+                    seen0=none, seen1=every)
+    assert not st[2]["observed"] and not st[2]["candidate"]
 
 
 def test_floor_resegmented_by_moved_glare_is_not_a_change():

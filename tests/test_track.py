@@ -129,6 +129,22 @@ def test_flow_tracking_new_ids_and_dropped_tracks():
     assert set(res.tracks["id"]) == {a[0], b, c}
 
 
+def test_vote_keeps_tracks_seen_at_a_key_frame():
+    # a sparse capture: the object a photo shows (frame 0, the photo's pose) is lost in the
+    # blurred renders that follow; a segment flickering in one frame between photos goes
+    centres = [[(20 + 2 * k, 20), (50 + 2 * k, 40), (20 + 2 * k, 45)] for k in range(7)]
+    present = [[1, 1 if k == 0 else 0, 1 if k == 2 else 0] for k in range(7)]
+    for key in (False, True):
+        frames = _disc_frames(centres, present)
+        frames[0].key = key
+        res = track_sequence(frames, TrackOptions(warp="flow", max_missed=1))
+        photo = int(np.median(res.ids[0][frames[0].labels == 2]))
+        flicker = int(np.median(res.ids[2][frames[2].labels == 3]))
+        assert (photo > 0) == key
+        assert flicker == 0
+        assert int(np.median(res.ids[3][frames[3].labels == 1])) > 0  # the steady disc stays
+
+
 def _textured(rng, shape, sigma=1.2):
     x = cv2.GaussianBlur(rng.normal(size=shape + (3,)).astype(np.float32), (0, 0), sigma)
     return (0.2 + 0.6 * (x - x.min()) / (x.max() - x.min())).astype(np.float32)

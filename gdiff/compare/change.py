@@ -85,10 +85,12 @@ class CompareOptions:
         colour: the Bhattacharyya coefficient of the chromaticity histograms of its region at
         the two times below this (1 disables this requirement).
     min_observed: with key views (training cameras, see :mod:`gdiff.compare.coverage`) an ID is judged
-        at a pose only when at least this fraction of its mask there is observed at both times;
-        the evidence is measured on observed pixels only.
+        at a pose only when at least this fraction of its mask there is seen by a key view of
+        each time; the evidence is measured on those pixels only (the depth evidence on the
+        observed ones).
     observed_depth_tol: relative depth agreement for a key view to see a surface point.
-    observed_min_views: key views of a time that must see a point for it to be observed.
+    observed_min_views: key views of a time that must see a point for it to be observed (its
+        rendered depth trusted; :func:`pose_stats`).
     observed_min_parallax: ... and two of them from directions at least this many degrees
         apart (seen from one direction only, a surface's depth is not determined: a fitted
         model may put it anywhere along the rays).
@@ -306,7 +308,8 @@ def pose_stats(ids0: np.ndarray, ids1: np.ndarray, o: CompareOptions,
                rgb0: np.ndarray | None = None, rgb1: np.ndarray | None = None,
                depth0: np.ndarray | None = None, depth1: np.ndarray | None = None,
                focal: float | None = None, camera=None, observed0: np.ndarray | None = None,
-               observed1: np.ndarray | None = None) -> dict[int, dict]:
+               observed1: np.ndarray | None = None, seen0: np.ndarray | None = None,
+               seen1: np.ndarray | None = None) -> dict[int, dict]:
     """Compare the ID maps int [H, W] of one pose at t0 and t1.
 
     Returns, per ID visible at this pose: ``area0``, ``area1`` (pixels), ``candidate`` (absent
@@ -330,7 +333,14 @@ def pose_stats(ids0: np.ndarray, ids1: np.ndarray, o: CompareOptions,
     :mod:`gdiff.compare.coverage`): pixels whose surface a photo of that time saw. An ID whose mask is
     observed at both times for less than ``min_observed`` is not judged at this pose
     (``observed`` False: no candidate, left out of the vote); otherwise its evidence is measured
-    on the pixels observed at both times.
+    on the pixels observed at both times. ``seen0`` / ``seen1`` (bool [H, W], optional, with
+    the ``observed`` masks): pixels whose surface at least one photo of that time saw, a
+    superset of the observed ones. With them the ID comparison is judged on the pixels seen at
+    both times (its share decides whether the ID is judged), and the rendered depth is trusted
+    only on the observed pixels: there alone it decides whether a region is hidden at the
+    other time, changed depth, or is the same surface. A region only seen (a sparse capture:
+    an object one photo shows, whose depth the fit could put anywhere along that photo's rays)
+    is judged by its appearance.
 
     Texture-only confirmation also needs different colours (Bhattacharyya coefficient of the
     region's chromaticity histograms < ``texture_color_similarity``) and, with depth, is not
@@ -393,9 +403,13 @@ def pose_stats(ids0: np.ndarray, ids1: np.ndarray, o: CompareOptions,
             cache["chroma"] = appearance_change(rgb0, rgb1, o.chroma_tol, o.ncc_min)
         return cache["chroma"]
 
-    known = None
+    known = None  # depth trusted (observed at both times)
     if observed0 is not None and observed1 is not None:
         known = np.asarray(observed0, bool) & np.asarray(observed1, bool)
+    visible = known  # the ID comparison judged (seen by a photo at both times)
+    if known is not None and seen0 is not None and seen1 is not None:
+        visible = np.asarray(seen0, bool) & np.asarray(seen1, bool)
+    trusted = known if known is not None else True
     cont0, cont1 = _continuing(ids0, ids1, o)
     out: dict[int, dict] = {}
     labels = np.union1d(np.unique(ids0), np.unique(ids1))
@@ -414,8 +428,8 @@ def pose_stats(ids0: np.ndarray, ids1: np.ndarray, o: CompareOptions,
         if a0 and a1:
             cand = (c0 & c1).sum() / (c0 | c1).sum() < o.presence_iou
         seen = True
-        if known is not None:
-            known_box = known[sl]
+        if visible is not None:
+            known_box = visible[sl]
             seen = bool(known_box[(c0 if a0 else False) | (c1 if a1 else False)].mean()
                         >= o.min_observed)
             if not seen:
@@ -426,8 +440,8 @@ def pose_stats(ids0: np.ndarray, ids1: np.ndarray, o: CompareOptions,
                 region0, region1 = m0 & ~m1, m1 & ~m0
             else:
                 region0, region1 = (m0, np.zeros_like(m0)) if a0 else (np.zeros_like(m1), m1)
-            if known is not None:
-                region0, region1 = region0 & known, region1 & known
+            if visible is not None:
+                region0, region1 = region0 & visible, region1 & visible
         evidence, sim, confirmed = float("nan"), float("nan"), bool(cand)
         disoccluded = False
         if cand and (has_depth or has_rgb):
@@ -436,7 +450,7 @@ def pose_stats(ids0: np.ndarray, ids1: np.ndarray, o: CompareOptions,
                 # pixels hidden at the other time behind a nearer surface say nothing about
                 # the instance (it may stand behind the newcomer): leave them out
                 near1, near0 = nearer()
-                region = (region0 & ~near1) | (region1 & ~near0)
+                region = (region0 & ~(near1 & trusted)) | (region1 & ~(near0 & trusted))
                 full = (region0 | region1).sum()
                 if region.sum() < 0.25 * full:
                     cand = confirmed = False  # mostly hidden at the other time: undecidable
@@ -445,7 +459,9 @@ def pose_stats(ids0: np.ndarray, ids1: np.ndarray, o: CompareOptions,
                 # only the depth can tell whether this instance itself changed
                 disoccluded = region.sum() < 0.75 * full
             if cand and has_depth:
-                evidence = float(ev_depth()[region].mean()) if region.any() else 0.0
+                depth_region = region & trusted
+                evidence = (float(ev_depth()[depth_region].mean()) if depth_region.any()
+                            else 0.0 if not region.any() else float("nan"))
             texture_ok = True
             if cand and has_depth and region.any():
                 # a piece split off a segment that stays at the other time (same place):
@@ -455,10 +471,10 @@ def pose_stats(ids0: np.ndarray, ids1: np.ndarray, o: CompareOptions,
                 # its place (an object swapped for one of the same shape): a lighting change
                 # re-segments a floor under moved shadows or glare, but leaves its depth
                 same_surface = on_cont >= 0.5 * region.sum() or (
-                    (~raw_depth_change()[region]).mean() >= 0.5
+                    depth_region.any() and (~raw_depth_change()[depth_region]).mean() >= 0.5
                     and not _swapped(ids0, ids1, t, region0 & region, region1 & region, o))
                 texture_ok = not (disoccluded or (same_surface and not (has_rgb and _support_shows(
-                    region0 & region, region1 & region, cont0, cont1, chroma, o, known))))
+                    region0 & region, region1 & region, cont0, cont1, chroma, o, visible))))
             if cand and has_rgb and texture_ok:
                 sim = region_similarity(*grads(), region, o.min_texture)
             if cand:
@@ -468,7 +484,7 @@ def pose_stats(ids0: np.ndarray, ids1: np.ndarray, o: CompareOptions,
                                             _chroma_hist(chroma(1), region))
                     differs = colour < o.texture_color_similarity
                 confirmed = bool((has_depth and evidence >= o.min_evidence) or differs)
-            if cand and not has_depth and np.isnan(sim) and has_rgb and region.any():
+            if cand and np.isnan(evidence) and np.isnan(sim) and has_rgb and region.any():
                 evidence = float(ev_chroma()[region].mean())
                 confirmed = evidence >= o.min_evidence
         surround = float("nan")

@@ -158,7 +158,7 @@ def _spread(order: np.ndarray, hits: np.ndarray, views: list[DepthView], centre:
 def observed(depth: np.ndarray, camera: Camera, views: list[DepthView], depth_tol: float = 0.05,
              min_views: int = 1, alpha: np.ndarray | None = None,
              alpha_min: float = 0.5, min_parallax: float = 0.0,
-             max_views: int = 0) -> np.ndarray:
+             max_views: int = 0, seen: bool = False):
     """bool [H, W]: pixels of a frame (z-depth [H, W], ``camera``) rendered at time t whose
     surface at least ``min_views`` key views of time t see (see the module docstring), from
     directions at least ``min_parallax`` degrees apart (a surface seen from one direction only
@@ -171,35 +171,46 @@ def observed(depth: np.ndarray, camera: Camera, views: list[DepthView], depth_to
     are tested against every view: the same result (a point a subset of the views observes,
     all views observe; up to the two-sweep parallax estimate, exact for views along an arc)
     at a cost per frame that grows with the number of views only on those pixels.
+
+    With ``seen`` returns a pair (observed, seen): ``seen`` bool [H, W] marks the pixels whose
+    surface at least one key view sees (a photo of that time shows it, so the render there
+    reproduces a photo, though with fewer views or too little parallax its depth is not
+    determined).
     """
     z = np.asarray(depth)
     out = np.isfinite(z) & (z > 0)
     if alpha is not None:
         out &= np.asarray(alpha) >= alpha_min
     if not views:
-        return out
+        return (out, out.copy()) if seen else out
     P = world_points(z, camera)
 
     def sees(pts, vs):
+        """(observed, seen by one view at least), bool [n] each."""
         if min_parallax > 0:
             count, angle = view_count(pts, vs, depth_tol, parallax=True)
-            return (count >= min_views) & (angle >= min_parallax)
-        return view_count(pts, vs, depth_tol) >= min_views
+            return (count >= min_views) & (angle >= min_parallax), count >= 1
+        count = view_count(pts, vs, depth_tol)
+        return count >= min_views, count >= 1
 
     todo = np.flatnonzero(out.ravel())
     P = P.reshape(-1, 3)[todo]
     res = np.zeros(len(todo), bool)
+    one = np.zeros(len(todo), bool)
     if max_views > 0 and len(views) > max_views:
         # the views that share most of the frame decide most pixels; only the pixels they
         # leave unobserved are tested against every view
         near = nearest_views(P, views, depth_tol, max_views, spread=min_parallax > 0)
         if near:
-            res = sees(P, near)
+            res, one = sees(P, near)
         rest = np.flatnonzero(~res)
         if len(rest):
-            res[rest] = sees(P[rest], views)
+            res[rest], one[rest] = sees(P[rest], views)
     else:
-        res = sees(P, views)
-    ok = np.zeros(out.size, bool)
-    ok[todo] = res
-    return ok.reshape(out.shape)
+        res, one = sees(P, views)
+    masks = []
+    for r in (res, one) if seen else (res,):
+        ok = np.zeros(out.size, bool)
+        ok[todo] = r
+        masks.append(ok.reshape(out.shape))
+    return tuple(masks) if seen else masks[0]

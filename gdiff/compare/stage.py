@@ -76,22 +76,24 @@ def compare_paths(ids: dict[Key, np.ndarray], frames: dict[Key, dict] | None,
     for p, i in progress(poses, desc="compare"):
         f0, f1 = get((p, "t0", i)), get((p, "t1", i))
         cam = f0.get("camera")
-        seen = [None, None]
+        seen = [None, None]  # per time: depth determined there (observed), shown by a photo
         if views is not None and cam is not None:
             for time, f in enumerate((f0, f1)):
                 if f.get("depth") is not None and views[time]:
                     seen[time] = observed(f["depth"], cam, views[time], o.observed_depth_tol,
                                           o.observed_min_views, f.get("alpha"),
                                           min_parallax=o.observed_min_parallax,
-                                          max_views=o.observed_max_views)
+                                          max_views=o.observed_max_views, seen=True)
+        obs = [s[0] if s is not None else None for s in seen]
+        shown = [s[1] if s is not None else None for s in seen]
         stats.append((f"{p}/{i:05d}", pose_stats(
             ids[(p, "t0", i)], ids[(p, "t1", i)], o, f0.get("rgb"), f1.get("rgb"),
             f0.get("depth"), f1.get("depth"), focal=cam.fx if cam is not None else None,
-            camera=cam, observed0=seen[0], observed1=seen[1])))
+            camera=cam, observed0=obs[0], observed1=obs[1], seen0=shown[0], seen1=shown[1])))
         z0, z1 = f0.get("depth"), f1.get("depth")
         have_depth = cam is not None and z0 is not None and z1 is not None
         if have_depth and (geo is not None or flat is not None):
-            known = seen[0] & seen[1] if seen[0] is not None and seen[1] is not None else None
+            known = obs[0] & obs[1] if obs[0] is not None and obs[1] is not None else None
             differ = None
             if f0.get("rgb") is not None and f1.get("rgb") is not None:
                 differ = appearance_change(f0["rgb"], f1["rgb"], o.chroma_tol, o.ncc_min)

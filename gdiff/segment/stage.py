@@ -20,7 +20,7 @@ import numpy as np
 import pandas as pd
 
 from ..errors import SceneError
-from ..frames import TIMES, Key, read_frame, read_sequence, render_files
+from ..frames import TIMES, Key, key_frames, read_frame, read_sequence, render_files
 from ..io import MAX_ID, write_csv, write_ids, write_image, write_json
 from ..log import progress
 from ..track import TrackFrame, TrackOptions, chain_order, labels_from_instances, track_sequence
@@ -38,8 +38,10 @@ class _Chain(Sequence):
     back in the chain) is loaded again.
     """
 
-    def __init__(self, order: list[Key], get, segmenter: Segmenter, keep: int):
+    def __init__(self, order: list[Key], get, segmenter: Segmenter, keep: int,
+                 key_poses: dict[tuple[str, int], int] | None = None):
         self.order, self.get, self.segmenter, self.keep = order, get, segmenter, max(2, keep)
+        self.key_poses = key_poses or {}
         self.labels: dict[int, np.ndarray] = {}
         self.cache: OrderedDict[int, TrackFrame] = OrderedDict()
 
@@ -62,7 +64,8 @@ class _Chain(Sequence):
             self.labels[k] = segment_labels(self.segmenter, f["rgb"], f.get("depth"),
                                             f.get("alpha"), cam.K if cam is not None else None)
         tf = TrackFrame(labels=self.labels[k], rgb=f["rgb"], depth=f.get("depth"), camera=cam,
-                        pose_key=(key[0], key[2]), name=key, time=TIMES.index(key[1]))
+                        pose_key=(key[0], key[2]), name=key, time=TIMES.index(key[1]),
+                        key=(key[0], key[2]) in self.key_poses)
         self.cache[k] = tf
         while len(self.cache) > self.keep:
             self.cache.popitem(last=False)
@@ -79,8 +82,9 @@ def segment_labels(segmenter: Segmenter, rgb: np.ndarray, depth=None, alpha=None
     return labels_from_instances(segmenter.segment(rgb, depth, alpha, K), rgb.shape[:2])
 
 
-def track_paths(frames, segmenter: Segmenter,
-                track_options: TrackOptions | None = None) -> tuple[dict[Key, np.ndarray], pd.DataFrame]:
+def track_paths(frames, segmenter: Segmenter, track_options: TrackOptions | None = None,
+                key_poses: dict[tuple[str, int], int] | None = None
+                ) -> tuple[dict[Key, np.ndarray], pd.DataFrame]:
     """Segment and track all frames in one ID space.
 
     ``frames[(path, t, i)]`` is a dict with ``rgb`` (float32 [H, W, 3] sRGB), optional
@@ -88,6 +92,9 @@ def track_paths(frames, segmenter: Segmenter,
     (:class:`Camera`). Every path must have the same frames at t0 and t1 (same poses).
     ``frames`` may also be ``(keys, load)``: the frame keys and a callable key -> frame dict,
     to read frames on demand (then only a few frames are held in memory at a time).
+    ``key_poses`` (optional, :func:`gdiff.frames.key_frames`): ``{(path, i): time}`` of the poses of
+    the training photos; the frame of such a pose at that time is a key frame of the tracker
+    (:attr:`gdiff.track.TrackFrame.key`).
     Returns (ID map int32 [H, W] per key, tracks table with id, first, last, n_frames,
     mean_area; first/last as "path/t/NNNNN").
     """
@@ -106,7 +113,8 @@ def track_paths(frames, segmenter: Segmenter,
         raise SceneError(f"rendered frames missing for {missing[:3]} (every path needs the same "
                          "frames at t0 and t1); re-run the render stage")
     o = track_options or TrackOptions()
-    chain = _Chain(order, get, segmenter, keep=o.max_missed + 3)
+    chain = _Chain(order, get, segmenter, keep=o.max_missed + 3,
+                   key_poses=key_poses)
     res = track_sequence(chain, o)
     ids = {key: m for key, m in zip(order, res.ids)}
     tracks = res.tracks.copy()
@@ -140,7 +148,7 @@ def segment_and_track(render_dir, poses_json, out_dir, options: SegmentOptions |
     Returns a summary dict (frames, tracks).
     """
     render_dir, out_dir = Path(render_dir), Path(out_dir)
-    cams, _ = read_sequence(poses_json)
+    cams, meta = read_sequence(poses_json)
     files = render_files(render_dir, cams)
     options = options or SegmentOptions()
     seg = make_segmenter(options)
@@ -150,7 +158,8 @@ def segment_and_track(render_dir, poses_json, out_dir, options: SegmentOptions |
         return dict(rgb=rgb, alpha=alpha, depth=depth, camera=cams[key[0]][key[2]])
 
     # frames are read on demand (all of them at once would not fit in memory on long paths)
-    ids, tracks = track_paths((list(files), load), seg, track_options)
+    ids, tracks = track_paths((list(files), load), seg, track_options,
+                               key_poses=key_frames(meta))
     if len(tracks) > MAX_ID:  # checked before anything is written
         raise SceneError(
             f"{render_dir}: {len(tracks)} instance tracks over {len(ids)} frames, more than the "

@@ -20,7 +20,7 @@ from gdiff.evaluate import find_eval_views
 from gdiff.importers import detect_format, import_scene
 from gdiff.io import read_image, write_image
 from gdiff.sfm import PosesOptions, read_cameras_file, run_poses
-from gdiff.sfm.seed import depth_range
+from gdiff.sfm.seed import depth_range, empty_cells
 from gdiff.sfm.undistort import undistorted_camera
 from gdiff.splat.ply import read_points
 
@@ -138,9 +138,29 @@ def test_seeding_threshold_is_per_image(synth_tiny_dir, gt_tiny, tmp_path):
     cams = [c for c in gt_tiny if c.set in ("before", "after")]
     (scene / "cameras.json").write_text(json.dumps(cameras_to_json(cams)))
     images = [(c.image, c.set) for c in cams]
-    low = run_poses(scene, tmp_path / "low", PosesOptions(num_threads=1, min_points_per_image=1),
-                    images=images)
+    low = run_poses(scene, tmp_path / "low", PosesOptions(num_threads=1, min_points_per_image=1,
+                                                          seed_cells=0), images=images)
     assert low["num_points_triangulated"] > 20 and low["num_points_seeded"] == 0
+    # enough points overall: only the parts of each photo no point projects into are seeded
+    part = run_poses(scene, tmp_path / "part", PosesOptions(num_threads=1, min_points_per_image=1,
+                                                            seed_points_per_image=400),
+                     images=images)
+    xyz, _ = read_points(tmp_path / "part" / "points.ply")
+    n_tri = part["num_points_triangulated"]
+    cells = empty_cells(cams, xyz[:n_tri], 16)
+    assert 0 < part["num_points_seeded"] < 400 * len(cams)
+    assert part["num_points_seeded"] == sum(int(round(400 * c.mean())) for c in cells)
+    start = n_tri
+    for c, empty in zip(cams, cells):  # each seeded point lies in an empty cell of its photo
+        m = int(round(400 * empty.mean()))
+        p = (c.w2c[:3, :3] @ xyz[start:start + m].T.astype(np.float64)).T + c.w2c[:3, 3]
+        uv = (c.K @ p.T).T
+        uv = uv[:, :2] / uv[:, 2:]
+        rows, cols = empty.shape
+        r = np.clip((uv[:, 1] / c.height * rows).astype(int), 0, rows - 1)
+        k = np.clip((uv[:, 0] / c.width * cols).astype(int), 0, cols - 1)
+        assert empty[r, k].mean() > 0.99
+        start += m
     high = run_poses(scene, tmp_path / "high",
                      PosesOptions(num_threads=1, min_points_per_image=10000,
                                   seed_points_per_image=50), images=images)

@@ -86,9 +86,12 @@ def test_register_tiny_writes_model_and_points(registered_tiny):
     out, summary = registered_tiny
     xyz, rgb = read_points(out / "points.ply")
     assert xyz.shape[1] == 3 and rgb.shape == xyz.shape and 0 <= rgb.min() <= rgb.max() <= 1
-    assert len(xyz) == summary["num_points"] > 100
+    assert summary["num_points"] > 100
+    assert len(xyz) == summary["num_points"] + summary["num_points_seeded"]
     rec = pycolmap.Reconstruction(str(out / "sparse" / "0"))
-    assert rec.num_reg_images() == 26 and rec.num_points3D() == len(xyz)
+    # the triangulated points first, then those seeded where none projects (not in the model)
+    assert rec.num_reg_images() == 26 and rec.num_points3D() == summary["num_points"]
+    xyz = xyz[:summary["num_points"]]
     # points are in front of the cameras that see them: project into cameras.json poses
     cams = load_cameras(out / "cameras.json")
     c = cams[0]
@@ -194,7 +197,9 @@ def test_known_poses_from_cameras_json(synth_tiny_dir, gt_tiny, tmp_path):
         assert np.allclose(c.c2w, gt[c.image].c2w, atol=1e-9)
         assert (c.fx, c.cx) == (gt[c.image].fx, gt[c.image].cx)
     xyz, _ = read_points(out / "points.ply")
-    assert len(xyz) == summary["num_points"] > 100
+    assert summary["num_points"] > 100
+    assert len(xyz) == summary["num_points"] + summary["num_points_seeded"]
+    xyz = xyz[:summary["num_points"]]  # the triangulated ones (then the seeded)
     assert summary["mean_reprojection_error"] < 1.0
     # triangulated with the true poses, points lie in the synth room (|x|,|y| < 3.2, 0<=z<=2.8)
     inside = (np.abs(xyz[:, :2]) < 3.3).all(1) & (xyz[:, 2] > -0.1) & (xyz[:, 2] < 2.9)

@@ -34,7 +34,9 @@ sparse model follows. Photos with an EXIF orientation tag are given to COLMAP as
 (:mod:`gdiff.sfm.upright`: pycolmap ignores the tag; every gdiff stage reads photos upright);
 without further resampling those copies are the ``images/`` of later stages. When triangulation leaves fewer than
 ``min_points_per_image`` points per image, points seeded in the camera frusta
-(:mod:`gdiff.sfm.seed`) are added to ``points.ply`` so a fit never starts from a handful.
+(:mod:`gdiff.sfm.seed`) are added to ``points.ply`` so a fit never starts from a handful;
+otherwise the parts of each photo that no point projects into (``seed_cells``) are seeded
+so, so a fit has Gaussians everywhere a photo shows something.
 
 Outputs in ``out_dir`` (written in a temporary folder inside ``out_dir`` and moved in at the
 end; ``cameras.json`` last, so its presence means the stage finished):

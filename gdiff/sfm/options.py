@@ -80,6 +80,12 @@ class PosesOptions:
             ``gdiff.sfm.seed``), so a fit never starts from a handful of Gaussians.
             0 = never seed.
         seed_points_per_image: points seeded per image when seeding (see above).
+        seed_cells: otherwise the parts of each photo that no triangulated point projects
+            into (cells of a grid with this many cells along the image's longer side) are
+            seeded the same way, ``seed_points_per_image`` x their share of the cells per
+            image: a sparse capture of weakly textured surfaces triangulates points on a few
+            textured spots only, and a fit does not grow Gaussians from there over the rest.
+            0 = only the whole-frustum seeding above.
         max_unregistered_fraction: if a set (before, after, eval_before, eval_after) loses more
             than this fraction of its images, the stage fails listing them; otherwise they are
             dropped with a warning.
@@ -113,6 +119,7 @@ class PosesOptions:
     refine_principal_point: bool = False
     min_points_per_image: int = 10
     seed_points_per_image: int = 1000
+    seed_cells: int = 16
     max_unregistered_fraction: float = 0.2
     num_threads: int = -1
     repeatable: bool = True
@@ -136,6 +143,8 @@ class PosesOptions:
             raise ValueError("sequential_overlap must be >= 1 and sequential_links >= 0")
         if not self.max_reproj_error > 0:
             raise ValueError("max_reproj_error must be > 0 (pixels)")
+        if self.seed_cells < 0:
+            raise ValueError("seed_cells must be >= 0")
         if self.min_points_per_image < 0 or self.seed_points_per_image < 1:
             raise ValueError("min_points_per_image must be >= 0 and seed_points_per_image "
                              ">= 1")

@@ -20,7 +20,7 @@ from .images import _count, _image_sizes, discover_images
 from .known import _run_known, _strip, load_known_cameras
 from .options import PosesOptions
 from .resample import to_one_pinhole
-from .seed import depth_range, seed_frustum_points
+from .seed import depth_range, empty_cells, seed_frustum_points
 from .undistort import undistort_reconstruction
 from .upright import orientations, write_upright_copies
 
@@ -114,15 +114,28 @@ def run_poses(scene_dir: str | os.PathLike, out_dir: str | os.PathLike,
         xyz, rgb = _points_of(rec)
         n_tri = len(xyz)
         n_min = opts.min_points_per_image * len(cams)
-        n_seed = opts.seed_points_per_image * len(cams) if n_tri < n_min else 0
+        counts, cells = [], None
+        if n_tri < n_min:  # too few to trust where they are: seed every photo whole
+            counts = [opts.seed_points_per_image] * len(cams)
+        elif opts.seed_cells > 0:  # seed the parts of each photo no point covers
+            cells = empty_cells(cams, xyz, opts.seed_cells)
+            counts = [int(round(opts.seed_points_per_image * c.mean())) for c in cells]
+        n_seed = int(sum(counts))
         if n_seed:
             near, far, how = depth_range(cams, xyz)
-            sx, sc = seed_frustum_points(cams, work / image_dir if image_dir else photos, n_seed,
-                                         near, far, seed=opts.seed)
-            log.info("%d triangulated points < %d (poses.min_points_per_image %d x %d "
-                     "images): seeded %d points in the camera frusta, depths %.3g to %.3g "
-                     "(from the %s)", n_tri, n_min, opts.min_points_per_image, len(cams),
-                     n_seed, near, far, how)
+            sx, sc = seed_frustum_points(cams, work / image_dir if image_dir else photos, counts,
+                                         near, far, seed=opts.seed, cells=cells)
+            if cells is None:
+                log.info("%d triangulated points < %d (poses.min_points_per_image %d x %d "
+                         "images): seeded %d points in the camera frusta, depths %.3g to %.3g "
+                         "(from the %s)", n_tri, n_min, opts.min_points_per_image, len(cams),
+                         n_seed, near, far, how)
+            else:
+                log.info("no triangulated point projects into %.1f %% of the photos' grid "
+                         "cells (poses.seed_cells %d along the longer side): seeded %d points "
+                         "on their rays, depths %.3g to %.3g (from the %s)",
+                         100 * float(np.mean([c.mean() for c in cells])), opts.seed_cells,
+                         n_seed, near, far, how)
             xyz, rgb = np.concatenate([xyz, sx]), np.concatenate([rgb, sc])
         summary.update(num_points_triangulated=n_tri, num_points_seeded=n_seed,
                        upright=n_upright, image_dir=image_dir)

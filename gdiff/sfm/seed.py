@@ -1,6 +1,9 @@
-"""Seed points in the cameras' frusta when triangulation leaves too few for a fit to start from.
+"""Seed points in the cameras' frusta where triangulation leaves a fit nothing to start from.
 
-A point is drawn for a random pixel of a camera, at a depth drawn log-uniformly (as many points
+Where the triangulated points leave parts of a photo empty (:func:`empty_cells`: cells of a
+grid over the image that no point projects into; a sparse capture of untextured furniture
+leaves most of each photo so), points are seeded on the rays of those parts; with too few
+points overall, on rays of the whole image. A point is drawn for a random pixel of a camera, at a depth drawn log-uniformly (as many points
 per doubling of the distance) between a near and a far distance, and takes that pixel's colour. The depth range
 is scene-relative: from the depths of the triangulated points when there are some, else from
 the point the optical axes pass closest to, else from the spread of the camera centres.
@@ -74,26 +77,68 @@ def depth_range(cams: list[Camera], xyz: np.ndarray, min_points: int = 3
     return 0.05 * s, 2.0 * s, "spread of the camera centres"
 
 
-def seed_frustum_points(cams: list[Camera], image_root: str | Path, n: int, near: float,
-                        far: float, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
-    """``n`` points on random pixel rays of ``cams`` (round robin over the cameras), depths
-    log-uniform over [near, far], coloured by the pixel of the camera's photo
-    (``image_root / cam.image``).
+def grid_shape(cam: Camera, cells: int) -> tuple[int, int]:
+    """(rows, columns) of the seeding grid of ``cam``: ``cells`` along the longer side, square
+    cells."""
+    side = max(cam.width, cam.height) / cells
+    return max(1, int(round(cam.height / side))), max(1, int(round(cam.width / side)))
+
+
+def empty_cells(cams: list[Camera], xyz: np.ndarray, cells: int) -> list[np.ndarray]:
+    """Per camera, bool [rows, cols] (:func:`grid_shape`): the cells of its image that no point
+    of ``xyz`` [N, 3] (world) projects into, in front of the camera (no occlusion test: a
+    point behind a nearer surface still counts)."""
+    out = []
+    xyz = np.asarray(xyz, np.float64).reshape(-1, 3)
+    for c in cams:
+        rows, cols = grid_shape(c, cells)
+        p = (c.w2c[:3, :3] @ xyz.T + c.w2c[:3, 3:4]).T
+        p = p[p[:, 2] > 1e-6]
+        uv = (c.K @ p.T).T
+        uv = uv[:, :2] / uv[:, 2:3]
+        r = np.floor(uv[:, 1] / c.height * rows).astype(np.int64)
+        k = np.floor(uv[:, 0] / c.width * cols).astype(np.int64)
+        ok = (r >= 0) & (r < rows) & (k >= 0) & (k < cols)
+        covered = np.zeros((rows, cols), bool)
+        covered[r[ok], k[ok]] = True
+        out.append(~covered)
+    return out
+
+
+def seed_frustum_points(cams: list[Camera], image_root: str | Path, n: int | list[int],
+                        near: float, far: float, seed: int = 0,
+                        cells: list[np.ndarray] | None = None
+                        ) -> tuple[np.ndarray, np.ndarray]:
+    """Points on random pixel rays of ``cams``, depths log-uniform over [near, far], coloured by
+    the pixel of the camera's photo (``image_root / cam.image``): ``n`` in all (round robin
+    over the cameras), or ``n[i]`` for camera ``i``. With ``cells`` (per camera a bool grid,
+    :func:`empty_cells`) the pixels are drawn from the True cells only.
 
     Returns:
-        ``xyz`` float32 [n, 3] (world), ``rgb`` uint8 [n, 3].
+        ``xyz`` float32 [N, 3] (world), ``rgb`` uint8 [N, 3].
     """
     rng = np.random.default_rng(seed)
-    xyz = np.zeros((n, 3), np.float32)
-    rgb = np.zeros((n, 3), np.uint8)
-    per = np.array_split(np.arange(n), len(cams))
-    for cam, idx in zip(cams, per):
-        if not idx.size:
+    counts = ([len(a) for a in np.array_split(np.arange(n), len(cams))] if np.isscalar(n)
+              else [int(x) for x in n])
+    total = int(sum(counts))
+    xyz = np.zeros((total, 3), np.float32)
+    rgb = np.zeros((total, 3), np.uint8)
+    ends = np.cumsum(counts)
+    for i, (cam, m) in enumerate(zip(cams, counts)):
+        if not m:
             continue
+        idx = np.arange(ends[i] - m, ends[i])
         img = read_image(Path(image_root) / cam.image)
         h, w = img.shape[:2]
-        u = rng.uniform(0, w, idx.size)
-        v = rng.uniform(0, h, idx.size)
+        if cells is None or not cells[i].any():
+            u = rng.uniform(0, w, idx.size)
+            v = rng.uniform(0, h, idx.size)
+        else:  # a random empty cell, then a random pixel in it
+            rows, cols = cells[i].shape
+            r, k = np.nonzero(cells[i])
+            pick = rng.integers(0, len(r), idx.size)
+            u = (k[pick] + rng.uniform(0, 1, idx.size)) * w / cols
+            v = (r[pick] + rng.uniform(0, 1, idx.size)) * h / rows
         d = np.exp(rng.uniform(np.log(near), np.log(far), idx.size))
         # pixel -> camera ray (the image may be stored at another size than the camera's)
         x = (u * cam.width / w - cam.cx) / cam.fx

@@ -2,6 +2,7 @@
 
 import dataclasses
 import json
+import re
 
 import cv2
 import numpy as np
@@ -416,7 +417,7 @@ def test_spread_views_are_picked_for_parallax():
     assert picked(spread=True) == [-1.2, 0.0, 1.2]
 
 
-def test_unobserved_region_is_not_a_change():
+def test_unobserved_region_is_not_a_change(caplog):
     """Path p1 is rendered at t1 where no after photo looked (its left part): the model renders
     something there (a surface nearer than before) that no photo supports. Only the object
     added where the after photo (the key view of p2) saw it is a change."""
@@ -440,7 +441,14 @@ def test_unobserved_region_is_not_a_change():
                        geometry_min_poses=1)
     _, blind = compare_paths(ids, frames, o)
     assert set(blind.loc[blind["changed"], "id"]) == {2, 3}  # without coverage: both
-    masks, df = compare_paths(ids, frames, o, keys=keys)
+    with caplog.at_level("INFO", logger="gdiff.compare"):
+        masks, df = compare_paths(ids, frames, o, keys=keys)
+    # the log says how much was judged: each frame is its own key view at one time, and the
+    # other time's photo (4 m aside) shows 36 of its 60 columns (60 %), less pixels of the
+    # objects at t1 that photo does not see
+    m = re.search(r"a photo of each time shows ([0-9.]+) %.* the other ([0-9.]+) % is not "
+                  r"judged", caplog.text)
+    assert m and 50 < float(m[1]) <= 60 and float(m[1]) + float(m[2]) == pytest.approx(100, abs=0.1)
     df = df.set_index("id")
     assert df.loc[3, "changed"] and df.loc[3, "type"] == "added"
     assert 2 not in df.index or not df.loc[2, "changed"]  # never judged: nothing saw it

@@ -69,6 +69,7 @@ def compare_paths(ids: dict[Key, np.ndarray], frames: dict[Key, dict] | None,
     poses = sorted({(p, i) for p, _, i in ids})
     views = key_views(get, keys) if keys else None
     stats = []
+    judged = np.zeros(3, np.int64)  # pixels with a surface at both times; seen; observed
     geo = (GeometryEvidence(o.geometry_voxel_px, o.geometry_vote, o.geometry_min_poses,
                             o.geometry_min_object) if o.geometry else None)
     flat = (GeometryEvidence(o.geometry_voxel_px, o.geometry_vote, o.geometry_min_poses,
@@ -86,6 +87,15 @@ def compare_paths(ids: dict[Key, np.ndarray], frames: dict[Key, dict] | None,
                                           max_views=o.observed_max_views, seen=True)
         obs = [s[0] if s is not None else None for s in seen]
         shown = [s[1] if s is not None else None for s in seen]
+        if all(m is not None for m in obs + shown):
+            surface = np.ones_like(obs[0])
+            for f in (f0, f1):
+                z = np.asarray(f["depth"])
+                surface &= np.isfinite(z) & (z > 0)
+                if f.get("alpha") is not None:
+                    surface &= np.asarray(f["alpha"]) >= 0.5
+            judged += [int(surface.sum()), int((shown[0] & shown[1]).sum()),
+                       int((obs[0] & obs[1]).sum())]
         stats.append((f"{p}/{i:05d}", pose_stats(
             ids[(p, "t0", i)], ids[(p, "t1", i)], o, f0.get("rgb"), f1.get("rgb"),
             f0.get("depth"), f1.get("depth"), focal=cam.fx if cam is not None else None,
@@ -106,6 +116,13 @@ def compare_paths(ids: dict[Key, np.ndarray], frames: dict[Key, dict] | None,
                 flat.add((p, i), z0, z1, cam, *flat_flags(z0, z1, o.depth_change_rel,
                                                           o.evidence_open, known, differ),
                          points=points)
+    if judged[0]:
+        log.info("coverage: a photo of each time shows %.1f %% of the rendered surface (judged "
+                 "by ID and appearance); its depth is observed (>= %d key views per time, "
+                 "%.0f deg apart) on %.1f %% (judged also by depth); the other %.1f %% is not "
+                 "judged", 100 * judged[1] / judged[0], o.observed_min_views,
+                 o.observed_min_parallax, 100 * judged[2] / judged[0],
+                 100 - 100 * judged[1] / judged[0])
     df = decide(stats, o)
     g_geo = geo.finish() if geo is not None else None
     g_flat = flat.finish(max_rate=o.flat_max_rate) if flat is not None else None

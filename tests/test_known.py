@@ -143,11 +143,18 @@ def test_seeding_threshold_is_per_image(synth_tiny_dir, gt_tiny, tmp_path):
     assert low["num_points_triangulated"] > 20 and low["num_points_seeded"] == 0
     # enough points overall: only the parts of each photo no point projects into are seeded
     part = run_poses(scene, tmp_path / "part", PosesOptions(num_threads=1, min_points_per_image=1,
-                                                            seed_points_per_image=400),
+                                                            seed_points_per_image=400,
+                                                            seed_min_empty=0.0),
                      images=images)
     xyz, _ = read_points(tmp_path / "part" / "points.ply")
     n_tri = part["num_points_triangulated"]
     cells = empty_cells(cams, xyz[:n_tri], 16)
+    # by default only when the empty cells are most of the photos (a sparse capture)
+    assert np.mean([c.mean() for c in cells]) < PosesOptions().seed_min_empty
+    assert low["num_points_triangulated"] == n_tri
+    dflt = run_poses(scene, tmp_path / "dflt", PosesOptions(num_threads=1, min_points_per_image=1),
+                     images=images)
+    assert dflt["num_points_seeded"] == 0
     assert 0 < part["num_points_seeded"] < 400 * len(cams)
     assert part["num_points_seeded"] == sum(int(round(400 * c.mean())) for c in cells)
     start = n_tri

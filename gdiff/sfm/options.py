@@ -86,6 +86,10 @@ class PosesOptions:
             image: a sparse capture of weakly textured surfaces triangulates points on a few
             textured spots only, and a fit does not grow Gaussians from there over the rest.
             0 = only the whole-frustum seeding above.
+        seed_min_empty: ... when the empty cells are at least this share of all the photos'
+            cells (a dense capture leaves a few per cent empty, which the fit's densification
+            fills from the neighbouring points; points seeded there at random depths are
+            floaters).
         max_unregistered_fraction: if a set (before, after, eval_before, eval_after) loses more
             than this fraction of its images, the stage fails listing them; otherwise they are
             dropped with a warning.
@@ -120,6 +124,7 @@ class PosesOptions:
     min_points_per_image: int = 10
     seed_points_per_image: int = 1000
     seed_cells: int = 16
+    seed_min_empty: float = 0.5
     max_unregistered_fraction: float = 0.2
     num_threads: int = -1
     repeatable: bool = True
@@ -143,8 +148,8 @@ class PosesOptions:
             raise ValueError("sequential_overlap must be >= 1 and sequential_links >= 0")
         if not self.max_reproj_error > 0:
             raise ValueError("max_reproj_error must be > 0 (pixels)")
-        if self.seed_cells < 0:
-            raise ValueError("seed_cells must be >= 0")
+        if self.seed_cells < 0 or not 0.0 <= self.seed_min_empty <= 1.0:
+            raise ValueError("seed_cells must be >= 0 and seed_min_empty in [0, 1]")
         if self.min_points_per_image < 0 or self.seed_points_per_image < 1:
             raise ValueError("min_points_per_image must be >= 0 and seed_points_per_image "
                              ">= 1")

@@ -119,7 +119,13 @@ def run_poses(scene_dir: str | os.PathLike, out_dir: str | os.PathLike,
             counts = [opts.seed_points_per_image] * len(cams)
         elif opts.seed_cells > 0:  # seed the parts of each photo no point covers
             cells = empty_cells(cams, xyz, opts.seed_cells)
-            counts = [int(round(opts.seed_points_per_image * c.mean())) for c in cells]
+            empty = float(np.mean([c.mean() for c in cells]))
+            if empty >= opts.seed_min_empty:
+                counts = [int(round(opts.seed_points_per_image * c.mean())) for c in cells]
+            else:
+                log.info("no triangulated point projects into %.1f %% of the photos' grid cells "
+                         "(< poses.seed_min_empty %.0f %%): nothing seeded", 100 * empty,
+                         100 * opts.seed_min_empty)
         n_seed = int(sum(counts))
         if n_seed:
             near, far, how = depth_range(cams, xyz)

@@ -93,7 +93,7 @@ def track_paths(frames, segmenter: Segmenter, track_options: TrackOptions | None
     ``frames`` may also be ``(keys, load)``: the frame keys and a callable key -> frame dict,
     to read frames on demand (then only a few frames are held in memory at a time).
     ``key_poses`` (optional, :func:`gdiff.frames.key_frames`): ``{(path, i): time}`` of the poses of
-    the training photos; the frame of such a pose at that time is a key frame of the tracker
+    the training photos; the frames of such a pose (at both times) are key frames of the tracker
     (:attr:`gdiff.track.TrackFrame.key`).
     Returns (ID map int32 [H, W] per key, tracks table with id, first, last, n_frames,
     mean_area; first/last as "path/t/NNNNN").

@@ -140,7 +140,7 @@ def run_poses(scene_dir: str | os.PathLike, out_dir: str | os.PathLike,
                 log.info("no triangulated point projects into %.1f %% of the photos' grid "
                          "cells (poses.seed_cells %d along the longer side): seeded %d points "
                          "on their rays, depths %.3g to %.3g (from the %s)",
-                         100 * float(np.mean([c.mean() for c in cells])), opts.seed_cells,
+                         100 * empty, opts.seed_cells,
                          n_seed, near, far, how)
             xyz, rgb = np.concatenate([xyz, sx]), np.concatenate([rgb, sc])
         summary.update(num_points_triangulated=n_tri, num_points_seeded=n_seed,

@@ -22,18 +22,23 @@ from ..io import read_image
 log = logging.getLogger("gdiff.sfm")
 
 
+def _project(c: Camera, xyz: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Pixel coordinates [M, 2] and depths [M] of the points of ``xyz`` [N, 3] (world) in
+    front of ``c``."""
+    p = (c.w2c[:3, :3] @ xyz.T + c.w2c[:3, 3:4]).T
+    p = p[p[:, 2] > 1e-6]
+    uv = (c.K @ p.T).T
+    return uv[:, :2] / uv[:, 2:3], p[:, 2]
+
+
 def _depths(cams: list[Camera], xyz: np.ndarray) -> np.ndarray:
     """Depths of ``xyz`` [N, 3] in every camera where they lie in front and inside the image."""
     out = []
     for c in cams:
-        p = (c.w2c[:3, :3] @ xyz.T + c.w2c[:3, 3:4]).T
-        z = p[:, 2]
-        ok = z > 1e-6
-        uv = (c.K @ p[ok].T).T
-        uv = uv[:, :2] / uv[:, 2:3]
+        uv, z = _project(c, xyz)
         inside = (uv[:, 0] >= 0) & (uv[:, 0] <= c.width) & (uv[:, 1] >= 0) & \
             (uv[:, 1] <= c.height)
-        out.append(z[ok][inside])
+        out.append(z[inside])
     return np.concatenate(out) if out else np.zeros(0)
 
 
@@ -92,10 +97,7 @@ def empty_cells(cams: list[Camera], xyz: np.ndarray, cells: int) -> list[np.ndar
     xyz = np.asarray(xyz, np.float64).reshape(-1, 3)
     for c in cams:
         rows, cols = grid_shape(c, cells)
-        p = (c.w2c[:3, :3] @ xyz.T + c.w2c[:3, 3:4]).T
-        p = p[p[:, 2] > 1e-6]
-        uv = (c.K @ p.T).T
-        uv = uv[:, :2] / uv[:, 2:3]
+        uv, _ = _project(c, xyz)
         r = np.floor(uv[:, 1] / c.height * rows).astype(np.int64)
         k = np.floor(uv[:, 0] / c.width * cols).astype(np.int64)
         ok = (r >= 0) & (r < rows) & (k >= 0) & (k < cols)

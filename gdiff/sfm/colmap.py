@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import contextlib
 import logging
+import sqlite3
 from pathlib import Path
 from typing import Iterator
 
@@ -80,7 +81,7 @@ def _match(db: Path, work: Path, opts: PosesOptions, pairs: list[tuple[str, str]
     import pycolmap
 
     mo = pycolmap.FeatureMatchingOptions()
-    mo.num_threads = opts.colmap_threads()
+    mo.num_threads = opts.match_threads()
     vo = pycolmap.TwoViewGeometryOptions()
     vo.ransac.random_seed = opts.seed
     vo.ransac.max_error = 2.0 * opts.max_reproj_error * pixel_scale
@@ -94,6 +95,19 @@ def _match(db: Path, work: Path, opts: PosesOptions, pairs: list[tuple[str, str]
         po.match_list_path = str(pair_file)
         pycolmap.match_image_pairs(db, matching_options=mo, pairing_options=po,
                                    verification_options=vo, device=pycolmap.Device.cpu)
+    _sort_pairs(db)
+
+
+def _sort_pairs(db: Path) -> None:
+    """Rewrite the database's match tables in pair-id order. Matching threads insert pairs in
+    the order they finish, and the mapper builds its correspondence graph (and so its tracks
+    and points) in the tables' row order: sorted, the model does not depend on the threads."""
+    with contextlib.closing(sqlite3.connect(db)) as con, con:
+        for table in ("matches", "two_view_geometries"):
+            con.execute(f"CREATE TEMP TABLE sorted_pairs AS SELECT * FROM {table} ORDER BY pair_id")
+            con.execute(f"DELETE FROM {table}")
+            con.execute(f"INSERT INTO {table} SELECT * FROM sorted_pairs ORDER BY pair_id")
+            con.execute("DROP TABLE sorted_pairs")
 
 
 def _read_descriptors(db: Path, names: list[str]) -> list[np.ndarray]:

@@ -93,13 +93,15 @@ class PosesOptions:
         max_unregistered_fraction: if a set (before, after, eval_before, eval_after) loses more
             than this fraction of its images, the stage fails listing them; otherwise they are
             dropped with a warning.
-        num_threads: CPU threads for COLMAP when ``repeatable`` is off (-1 = all).
-        repeatable: run all of COLMAP (feature extraction, matching, mapping, bundle
-            adjustment) on one thread, so two runs on the same photos give byte-identical poses
-            and points. With several threads the extraction order decides COLMAP's image ids,
-            each verification thread draws its own RANSAC samples for whichever pairs it gets,
-            and the order of sums in mapping moves the solution slightly; the fit then grows
-            such differences. Off = COLMAP on ``num_threads``.
+        num_threads: CPU threads for COLMAP's matching and verification always, and for its
+            other steps when ``repeatable`` is off (-1 = all).
+        repeatable: run COLMAP's feature extraction, mapping and bundle adjustment on one
+            thread, so two runs on the same photos give byte-identical poses and points. With
+            several threads the extraction order decides COLMAP's image ids and the order of
+            sums in mapping moves the solution slightly; the fit then grows such differences.
+            Matching and verification run on ``num_threads`` either way: each pair's RANSAC is
+            seeded with ``seed``, so with the image ids fixed its result does not depend on the
+            thread that verifies it. Off = every step on ``num_threads``.
         seed: random seed of COLMAP's RANSAC and mapper (for repeatable runs).
         colmap_log: let COLMAP write its own INFO log lines to stderr.
     """
@@ -161,9 +163,14 @@ class PosesOptions:
             raise ValueError("refine_iterations must be >= 0 and mapper_attempts >= 1")
 
     def colmap_threads(self) -> int:
-        """Threads for every COLMAP step: 1 when ``repeatable`` (each step's result depends on
-        the threads' order), else ``num_threads``."""
+        """Threads for COLMAP's extraction, mapping and bundle adjustment: 1 when
+        ``repeatable`` (their results depend on the threads' order), else ``num_threads``."""
         return 1 if self.repeatable else self.num_threads
+
+    def match_threads(self) -> int:
+        """Threads for COLMAP's matching and two-view verification: ``num_threads`` (a pair's
+        seeded RANSAC gives the same result on any thread)."""
+        return self.num_threads
 
     def exhaustive_limit(self) -> int:
         """Image count up to which ``matcher: auto`` matches all pairs."""

@@ -269,13 +269,25 @@ def propagate(ids_src: np.ndarray, src: TrackFrame, dst: TrackFrame, o: TrackOpt
     return flow_ids(ids_src, src, dst, o.flow_fb_tol)
 
 
+def unique_ids(a: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``np.unique(a.ravel(), return_inverse=True)`` for an ID map (non-negative integers): the
+    sorted IDs present and each pixel's index into them, by counting instead of sorting."""
+    flat = a.ravel()
+    if flat.size == 0 or flat.dtype.kind not in "iu" or flat.min() < 0:
+        return np.unique(flat, return_inverse=True)
+    present = np.bincount(flat) > 0
+    ids = np.flatnonzero(present).astype(flat.dtype)
+    index = np.cumsum(present) - 1
+    return ids, index[flat]
+
+
 def _iou_table(pred: np.ndarray, labels: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """IoU between every predicted track mask and every segment.
 
     Returns (track_ids [T], segment labels [S], iou [T, S]).
     """
-    tids, pinv = np.unique(pred.ravel(), return_inverse=True)
-    sids, sinv = np.unique(labels.ravel(), return_inverse=True)
+    tids, pinv = unique_ids(pred)
+    sids, sinv = unique_ids(labels)
     inter = np.bincount(pinv.ravel() * len(sids) + sinv.ravel(),
                         minlength=len(tids) * len(sids)).reshape(len(tids), len(sids))
     pa = inter.sum(1)
@@ -503,13 +515,6 @@ def link_groups(n: int, links: list[tuple[int, int]]) -> np.ndarray:
     return connected_components(graph, directed=False)[1]
 
 
-def _same_place(pa: np.ndarray, sa: float, pb: np.ndarray, sb: float, dist_frac: float) -> bool:
-    """Two tracks' (median world point [3], metric size) at one time: the same object when the
-    points are closer than ``dist_frac`` x the smaller size and the sizes agree within 1.5x."""
-    small = min(sa, sb)
-    return bool(np.linalg.norm(pa - pb) <= dist_frac * small and max(sa, sb) <= 1.5 * small)
-
-
 def merge_by_position(ids: list[np.ndarray], frames: list[TrackFrame],
                       dist_frac: float) -> dict[int, int]:
     """Tracks of one object by 3D position (see the module docstring, step 5).
@@ -518,7 +523,7 @@ def merge_by_position(ids: list[np.ndarray], frames: list[TrackFrame],
     """
     frames_of: dict[int, set[int]] = {}
     for k, m in enumerate(ids):
-        for t in np.unique(m):
+        for t in unique_ids(m)[0]:
             if t:
                 frames_of.setdefault(int(t), set()).add(k)
     return merge_positions(track_positions(ids, frames), frames_of, dist_frac)
@@ -531,13 +536,26 @@ def merge_positions(pos: dict[int, dict[float, tuple[np.ndarray, float]]],
     if len(pos) < 2:
         return {}
     tr = sorted(pos)
-    links = []
+    # tracks seen at the same times are the same object when, at every one of them, their
+    # median points are closer than dist_frac x the smaller size and the sizes agree within 1.5x
+    by_times: dict[tuple, list[int]] = {}
     for i, a in enumerate(tr):
-        for j in range(i + 1, len(tr)):
-            b = tr[j]
-            if set(pos[a]) != set(pos[b]) or frames_of.get(a, set()) & frames_of.get(b, set()):
-                continue
-            if all(_same_place(*pos[a][tm], *pos[b][tm], dist_frac) for tm in pos[a]):
+        by_times.setdefault(tuple(sorted(pos[a])), []).append(i)
+    links = []
+    for times, members in by_times.items():
+        if len(members) < 2:
+            continue
+        same = np.ones((len(members), len(members)), bool)
+        for tm in times:
+            p = np.stack([pos[tr[i]][tm][0] for i in members]).astype(np.float64)
+            sz = np.array([pos[tr[i]][tm][1] for i in members], np.float64)
+            small = np.minimum(sz[:, None], sz[None, :])
+            dist = np.sqrt(((p[:, None, :] - p[None, :, :]) ** 2).sum(-1))
+            same &= (dist <= dist_frac * small) & (np.maximum(sz[:, None], sz[None, :])
+                                                   <= 1.5 * small)
+        for u, v in zip(*np.nonzero(np.triu(same, 1))):
+            i, j = members[u], members[v]
+            if not frames_of.get(tr[i], set()) & frames_of.get(tr[j], set()):
                 links.append((i, j))
     if not links:
         return {}

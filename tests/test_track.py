@@ -11,7 +11,7 @@ from gdiff import synth
 from gdiff.cameras import Camera
 from gdiff.segment import SegmentOptions, make_segmenter, track_paths
 from gdiff.track import (TrackFrame, TrackOptions, chain_order, merge_by_position, reproject_ids,
-                         track_sequence)
+                         track_sequence, unique_ids)
 
 N = 6
 
@@ -224,3 +224,16 @@ def test_frames_read_on_demand_give_the_same_tracks(tracked):
     counts = pd.Series([str(k) for k in reads]).value_counts()
     assert counts.max() <= 2 and len(counts) == len(frames)
     assert len(reads) > len(frames)  # the cache is bounded: partners far back are read again
+
+
+def test_unique_ids_equals_numpy_unique():
+    rng = np.random.default_rng(0)
+    for dtype, high in ((np.uint16, 60000), (np.int32, 40), (np.int64, 3)):
+        a = rng.integers(0, high, size=(37, 23)).astype(dtype)
+        ids, inv = unique_ids(a)
+        ref_ids, ref_inv = np.unique(a.ravel(), return_inverse=True)
+        np.testing.assert_array_equal(ids, ref_ids)
+        np.testing.assert_array_equal(inv.ravel(), ref_inv.ravel())
+        assert ids.dtype == a.dtype
+    ids, inv = unique_ids(np.array([[-2, 5], [5, -2]]))  # negatives: numpy's own unique
+    np.testing.assert_array_equal(ids, [-2, 5])

@@ -364,7 +364,10 @@ def track_sequence(frames: list[TrackFrame], options: TrackOptions | None = None
                         continue
                 key = (int(t), int(s))
                 best[key] = max(best.get(key, 0.0), float(iou[a, b]))
-        seg_ids = [int(s) for s in np.unique(labels) if s != 0]
+        seg_sids, seg_index = unique_ids(labels)
+        seg_area = np.bincount(seg_index.ravel(), minlength=len(seg_sids))
+        area_of = {int(s): int(a) for s, a in zip(seg_sids, seg_area) if s != 0}
+        seg_ids = list(area_of)
         assign: dict[int, int] = {}
         if best and seg_ids:
             trk = sorted({t for t, _ in best})
@@ -391,7 +394,7 @@ def track_sequence(frames: list[TrackFrame], options: TrackOptions | None = None
             seen_at.setdefault(t, []).append(k)
             if fr.key:
                 at_key.add(t)
-            areas[t] = areas.get(t, 0) + int((labels == s).sum())
+            areas[t] = areas.get(t, 0) + area_of[s]
         if fr.pose_key is not None:
             done_by_pose[fr.pose_key] = k
         # keep memory bounded on long chains: textures of frames out of the propagation

@@ -980,3 +980,19 @@ def test_object_relit_and_tracked_apart_is_not_a_change_but_a_swap_is():
     assert changed == {4, 5}, df
     _, ungated = compare_paths(ids, frames, CompareOptions(confirm_support=0.0))
     assert {2, 3} <= set(ungated.loc[ungated["changed"], "id"])  # what the ID comparison saw
+
+
+def test_chroma_hist_bins_as_histogram2d():
+    """The chromaticity histogram counts into the bins np.histogram2d gives over [0, 1),
+    values on bin edges included."""
+    from gdiff.compare.change import _chroma_hist
+    rng = np.random.default_rng(0)
+    c = rng.random((30, 40, 3))
+    c[:10, :, :2] = np.round(c[:10, :, :2] * 8) / 8  # exactly on the edges
+    w = rng.random((30, 40))
+    m = rng.random((30, 40)) > 0.3
+    sel = m & (w > 0.3)
+    ref = np.histogram2d(np.clip(c[sel, 0], 0, 0.999), np.clip(c[sel, 1], 0, 0.999), bins=8,
+                         range=[[0, 1], [0, 1]])[0]
+    np.testing.assert_array_equal(_chroma_hist((c, w), m), ref)
+    assert _chroma_hist((c, w), np.zeros_like(m)).sum() == 0

@@ -264,9 +264,10 @@ def _chroma_hist(rgb: np.ndarray | tuple, mask: np.ndarray, bins: int = 8) -> np
     sel = mask & (w > 0.3)
     if not sel.any():
         return np.zeros((bins, bins))
-    h, _, _ = np.histogram2d(np.clip(c[sel, 0], 0, 0.999), np.clip(c[sel, 1], 0, 0.999),
-                             bins=bins, range=[[0, 1], [0, 1]])
-    return h
+    # bins of equal width over [0, 1) (the same bins as np.histogram2d with that range)
+    r = np.floor(np.clip(c[sel, 0], 0, 0.999) * bins).astype(np.int64)
+    g = np.floor(np.clip(c[sel, 1], 0, 0.999) * bins).astype(np.int64)
+    return np.bincount(r * bins + g, minlength=bins * bins).reshape(bins, bins).astype(np.float64)
 
 
 def surround_colour_change(rgb0: np.ndarray, rgb1: np.ndarray, region: np.ndarray,

@@ -104,6 +104,12 @@ def depth_points(depth: np.ndarray, K: np.ndarray, sigma: float) -> np.ndarray:
     return np.stack([z * u[None, :], z * v[:, None], z], axis=-1)
 
 
+def _dot3(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Per-pixel dot product [H, W] of two [H, W, 3] maps (``(a * b).sum(-1)``, summed in the
+    same order, without numpy's slow reduction over a length-3 axis)."""
+    return a[..., 0] * b[..., 0] + a[..., 1] * b[..., 1] + a[..., 2] * b[..., 2]
+
+
 def point_normals(P: np.ndarray) -> np.ndarray:
     """Unit normals [H, W, 3] of a point map [H, W, 3], facing the camera at the origin."""
     du = np.gradient(P, axis=1)  # one-sided at the image border
@@ -118,12 +124,6 @@ def point_normals(P: np.ndarray) -> np.ndarray:
 def depth_normals(depth: np.ndarray, K: np.ndarray, sigma: float) -> np.ndarray:
     """Unit surface normals [H, W, 3] (camera frame, OpenCV axes) from a z-depth map [H, W]."""
     return point_normals(depth_points(depth, K, sigma))
-
-
-def _dot3(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """Per-pixel dot product [H, W] of two [H, W, 3] maps (``(a * b).sum(-1)``, summed in the
-    same order, without numpy's slow reduction over a length-3 axis)."""
-    return a[..., 0] * b[..., 0] + a[..., 1] * b[..., 1] + a[..., 2] * b[..., 2]
 
 
 def crease_edges(depth: np.ndarray, valid: np.ndarray, K: np.ndarray, max_deg: float,

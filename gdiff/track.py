@@ -518,6 +518,10 @@ def link_groups(n: int, links: list[tuple[int, int]]) -> np.ndarray:
     return connected_components(graph, directed=False)[1]
 
 
+#: tracks compared at once with all others in :func:`merge_positions` (bounds its memory)
+_MERGE_BLOCK = 256
+
+
 def merge_by_position(ids: list[np.ndarray], frames: list[TrackFrame],
                       dist_frac: float) -> dict[int, int]:
     """Tracks of one object by 3D position (see the module docstring, step 5).
@@ -546,20 +550,25 @@ def merge_positions(pos: dict[int, dict[float, tuple[np.ndarray, float]]],
         by_times.setdefault(tuple(sorted(pos[a])), []).append(i)
     links = []
     for times, members in by_times.items():
-        if len(members) < 2:
+        m = len(members)
+        if m < 2:
             continue
-        same = np.ones((len(members), len(members)), bool)
-        for tm in times:
-            p = np.stack([pos[tr[i]][tm][0] for i in members]).astype(np.float64)
-            sz = np.array([pos[tr[i]][tm][1] for i in members], np.float64)
-            small = np.minimum(sz[:, None], sz[None, :])
-            dist = np.sqrt(((p[:, None, :] - p[None, :, :]) ** 2).sum(-1))
-            same &= (dist <= dist_frac * small) & (np.maximum(sz[:, None], sz[None, :])
-                                                   <= 1.5 * small)
-        for u, v in zip(*np.nonzero(np.triu(same, 1))):
-            i, j = members[u], members[v]
-            if not frames_of.get(tr[i], set()) & frames_of.get(tr[j], set()):
-                links.append((i, j))
+        pts = {tm: np.stack([pos[tr[i]][tm][0] for i in members]).astype(np.float64)
+               for tm in times}
+        size = {tm: np.array([pos[tr[i]][tm][1] for i in members], np.float64) for tm in times}
+        for r0 in range(0, m, _MERGE_BLOCK):  # rows in blocks: memory of a block x m pairs
+            r1 = min(m, r0 + _MERGE_BLOCK)
+            same = np.arange(m)[None, :] > np.arange(r0, r1)[:, None]  # each pair once
+            for tm in times:
+                p, sz = pts[tm], size[tm]
+                small = np.minimum(sz[r0:r1, None], sz[None, :])
+                dist = np.sqrt(((p[r0:r1, None, :] - p[None, :, :]) ** 2).sum(-1))
+                same &= (dist <= dist_frac * small) & (np.maximum(sz[r0:r1, None], sz[None, :])
+                                                       <= 1.5 * small)
+            for u, v in zip(*np.nonzero(same)):
+                i, j = members[r0 + u], members[v]
+                if not frames_of.get(tr[i], set()) & frames_of.get(tr[j], set()):
+                    links.append((i, j))
     if not links:
         return {}
     label = link_groups(len(tr), links)

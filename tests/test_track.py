@@ -237,3 +237,22 @@ def test_unique_ids_equals_numpy_unique():
         assert ids.dtype == a.dtype
     ids, inv = unique_ids(np.array([[-2, 5], [5, -2]]))  # negatives: numpy's own unique
     np.testing.assert_array_equal(ids, [-2, 5])
+
+
+def test_merge_positions_does_not_depend_on_the_block_size(monkeypatch):
+    """Tracks are compared in blocks of rows (bounded memory); the merges are the same for any
+    block size, and pairs at the same place at every time merge into the smaller ID."""
+    import gdiff.track as track
+
+    rng = np.random.default_rng(3)
+    pos, frames_of = {}, {}
+    for t in range(1, 121):
+        centre = rng.random(3) * 10 if t % 3 else pos[t - 1][0.0][0] + 0.01  # every third: a twin
+        times = (0.0,) if t % 5 else (0.0, 1.0)
+        pos[t] = {tm: (np.asarray(centre, np.float64), 1.0) for tm in times}
+        frames_of[t] = {t}
+    ref = track.merge_positions(pos, frames_of, 0.5)
+    monkeypatch.setattr(track, "_MERGE_BLOCK", 7)
+    assert track.merge_positions(pos, frames_of, 0.5) == ref
+    assert ref[3] == 2 and ref[9] == 8  # twins seen at the same times merge
+    assert 6 not in ref and 15 not in ref  # twins seen at other times (5: t0 and t1, 6: t0) do not

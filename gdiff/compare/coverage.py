@@ -155,6 +155,17 @@ def _spread(order: np.ndarray, hits: np.ndarray, views: list[DepthView], centre:
     return order[chosen + rest[:max_views - len(chosen)]]
 
 
+def surface(depth: np.ndarray, alpha: np.ndarray | None = None,
+            alpha_min: float = 0.5) -> np.ndarray:
+    """bool [H, W]: pixels of a rendered frame that show a surface: finite positive z-depth
+    [H, W] and, with ``alpha`` (rendered opacity [H, W]), opacity >= ``alpha_min``."""
+    z = np.asarray(depth)
+    out = np.isfinite(z) & (z > 0)
+    if alpha is not None:
+        out &= np.asarray(alpha) >= alpha_min
+    return out
+
+
 def observed(depth: np.ndarray, camera: Camera, views: list[DepthView], depth_tol: float = 0.05,
              min_views: int = 1, alpha: np.ndarray | None = None,
              alpha_min: float = 0.5, min_parallax: float = 0.0,
@@ -178,9 +189,7 @@ def observed(depth: np.ndarray, camera: Camera, views: list[DepthView], depth_to
     determined).
     """
     z = np.asarray(depth)
-    out = np.isfinite(z) & (z > 0)
-    if alpha is not None:
-        out &= np.asarray(alpha) >= alpha_min
+    out = surface(z, alpha, alpha_min)
     if not views:
         return (out, out.copy()) if seen else out
     P = world_points(z, camera)

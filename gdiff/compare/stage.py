@@ -28,7 +28,7 @@ from ..io import read_ids, read_json, write_csv, write_mask
 from ..log import progress
 from ..track import world_points
 from .change import CompareOptions, appearance_change, change_masks, decide, pose_stats
-from .coverage import DepthView, observed
+from .coverage import DepthView, observed, surface
 from .geometry import GeometryEvidence, flat_flags, pose_flags, write_evidence
 
 log = logging.getLogger("gdiff.compare")
@@ -88,13 +88,8 @@ def compare_paths(ids: dict[Key, np.ndarray], frames: dict[Key, dict] | None,
         obs = [s[0] if s is not None else None for s in seen]
         shown = [s[1] if s is not None else None for s in seen]
         if all(m is not None for m in obs + shown):
-            surface = np.ones_like(obs[0])
-            for f in (f0, f1):
-                z = np.asarray(f["depth"])
-                surface &= np.isfinite(z) & (z > 0)
-                if f.get("alpha") is not None:
-                    surface &= np.asarray(f["alpha"]) >= 0.5
-            judged += [int(surface.sum()), int((shown[0] & shown[1]).sum()),
+            both = surface(f0["depth"], f0.get("alpha")) & surface(f1["depth"], f1.get("alpha"))
+            judged += [int(both.sum()), int((shown[0] & shown[1]).sum()),
                        int((obs[0] & obs[1]).sum())]
         stats.append((f"{p}/{i:05d}", pose_stats(
             ids[(p, "t0", i)], ids[(p, "t1", i)], o, f0.get("rgb"), f1.get("rgb"),

@@ -281,13 +281,15 @@ def unique_ids(a: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return ids, index[flat]
 
 
-def _iou_table(pred: np.ndarray, labels: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """IoU between every predicted track mask and every segment.
+def _iou_table(pred: np.ndarray, segments: tuple[np.ndarray, np.ndarray]
+               ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """IoU between every predicted track mask and every segment; ``segments`` is
+    :func:`unique_ids` of the frame's segment labels (computed once per frame).
 
     Returns (track_ids [T], segment labels [S], iou [T, S]).
     """
     tids, pinv = unique_ids(pred)
-    sids, sinv = unique_ids(labels)
+    sids, sinv = segments
     inter = np.bincount(pinv.ravel() * len(sids) + sinv.ravel(),
                         minlength=len(tids) * len(sids)).reshape(len(tids), len(sids))
     pa = inter.sum(1)
@@ -327,6 +329,7 @@ def track_sequence(frames: list[TrackFrame], options: TrackOptions | None = None
 
     for k, fr in enumerate(progress(frames, desc="track", total=len(frames))):
         labels = np.asarray(fr.labels)
+        seg_sids, seg_index = unique_ids(labels)
         sources: list[tuple[int, np.ndarray]] = []
         if k > 0:
             sources.append((k - 1, out[k - 1]))
@@ -351,7 +354,7 @@ def track_sequence(frames: list[TrackFrame], options: TrackOptions | None = None
             check = (cross_time or (same_pose and src.time is None)) and \
                 o.link_min_similarity > -1 and src.rgb is not None and fr.rgb is not None
             pred = propagate(ids_src, src, fr, o)
-            tids, sids, iou = _iou_table(pred, labels)
+            tids, sids, iou = _iou_table(pred, (seg_sids, seg_index))
             for a, b in zip(*np.nonzero(iou > 0)):
                 t, s = tids[a], sids[b]
                 if check and iou[a, b] >= o.iou_gate:
@@ -364,7 +367,6 @@ def track_sequence(frames: list[TrackFrame], options: TrackOptions | None = None
                         continue
                 key = (int(t), int(s))
                 best[key] = max(best.get(key, 0.0), float(iou[a, b]))
-        seg_sids, seg_index = unique_ids(labels)
         seg_area = np.bincount(seg_index.ravel(), minlength=len(seg_sids))
         area_of = {int(s): int(a) for s, a in zip(seg_sids, seg_area) if s != 0}
         seg_ids = list(area_of)

@@ -81,7 +81,7 @@ def _match(db: Path, work: Path, opts: PosesOptions, pairs: list[tuple[str, str]
     import pycolmap
 
     mo = pycolmap.FeatureMatchingOptions()
-    mo.num_threads = opts.match_threads()
+    mo.num_threads = opts.num_threads  # each pair's RANSAC is seeded: same on any thread
     vo = pycolmap.TwoViewGeometryOptions()
     vo.ransac.random_seed = opts.seed
     vo.ransac.max_error = 2.0 * opts.max_reproj_error * pixel_scale

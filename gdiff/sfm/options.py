@@ -167,11 +167,6 @@ class PosesOptions:
         ``repeatable`` (their results depend on the threads' order), else ``num_threads``."""
         return 1 if self.repeatable else self.num_threads
 
-    def match_threads(self) -> int:
-        """Threads for COLMAP's matching and two-view verification: ``num_threads`` (a pair's
-        seeded RANSAC gives the same result on any thread)."""
-        return self.num_threads
-
     def exhaustive_limit(self) -> int:
         """Image count up to which ``matcher: auto`` matches all pairs."""
         if self.exhaustive_max_images is not None:

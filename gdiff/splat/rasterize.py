@@ -35,10 +35,12 @@ Maths (classic 3DGS, as in the reference CUDA kernels)
 Backends
 --------
 ``backend="torch"`` is plain differentiable torch (any device; the reference). ``"cpp"`` is the
-compiled CPU kernel of :mod:`gdiff.splat.csrc` (tile-based, early termination, std::threads).
+compiled CPU kernel of :mod:`gdiff.splat.csrc` (tile-based, early termination, std::threads),
+with the projection and the SH colours also in C++ (fused kernels, same maths as the torch
+code here, which stays the reference and is used when the cameras need a gradient).
 ``"gsplat"`` calls ``gsplat.rasterization`` (CUDA tensors only, gsplat installed). ``"auto"``
 picks gsplat for CUDA tensors when installed, else the C++ kernel for CPU tensors when it builds,
-else torch. The projection (and so the gradient chain to 3D parameters) is shared torch code.
+else torch.
 """
 
 from __future__ import annotations
@@ -49,7 +51,7 @@ from typing import Any
 
 import torch
 
-from .sh import num_sh_bases, sh_to_color
+from .sh import num_sh_bases, sh_colors, sh_to_color
 
 log = logging.getLogger("gdiff.splat.rasterize")
 
@@ -399,9 +401,14 @@ def rasterize(means: torch.Tensor, quats: torch.Tensor, scales: torch.Tensor,
         return _rasterize_gsplat(**{k: v for k, v in locals().items()
                                     if k not in ("used", "N", "C", "backend")})
 
-    proj = project_gaussians(means, covariance_3d(quats, scales), viewmats, Ks, width, height,
-                             near_plane, far_plane, eps2d, radius_clip)
-    feats = _features(colors, sh_degree, means, viewmats, C, N)  # [C,N,D]
+    if used == "cpp" and not (viewmats.requires_grad or Ks.requires_grad):
+        from . import csrc
+        proj = csrc.project_cpp(means, quats, scales, viewmats, Ks, width, height, near_plane,
+                                far_plane, eps2d, radius_clip)
+    else:
+        proj = project_gaussians(means, covariance_3d(quats, scales), viewmats, Ks, width,
+                                 height, near_plane, far_plane, eps2d, radius_clip)
+    feats = _features(colors, sh_degree, means, viewmats, C, N, fused=used == "cpp")  # [C,N,D]
     D = feats.shape[-1]
     depth_feat = proj["depths"][..., None]
     if render_mode in ("D", "ED"):
@@ -462,8 +469,9 @@ def camera_centers(viewmats: torch.Tensor) -> torch.Tensor:
     return -torch.einsum("cji,cj->ci", viewmats[:, :3, :3], viewmats[:, :3, 3])
 
 
-def _features(colors, sh_degree, means, viewmats, C, N) -> torch.Tensor:
-    """Per-camera features [C,N,D]: plain features, or SH evaluated from each camera centre."""
+def _features(colors, sh_degree, means, viewmats, C, N, fused=False) -> torch.Tensor:
+    """Per-camera features [C,N,D]: plain features, or SH evaluated from each camera centre
+    (``fused``: with the C++ kernel where it applies)."""
     if sh_degree is None:
         if colors.dim() == 2 and colors.shape[0] == N:
             return colors[None].expand(C, N, colors.shape[1])
@@ -477,8 +485,9 @@ def _features(colors, sh_degree, means, viewmats, C, N) -> torch.Tensor:
         raise ValueError(f"SH colors must be [N,K,3] or [C,N,K,3] with K >= {K} for sh_degree "
                          f"{sh_degree}; got {tuple(colors.shape)}")
     dirs = means[None, :, :] - camera_centers(viewmats)[:, None, :]  # [C,N,3]
-    coeffs = colors if colors.dim() == 4 else colors[None]
-    return sh_to_color(sh_degree, coeffs, dirs)
+    if colors.dim() == 3:
+        return sh_colors(sh_degree, colors, dirs, fused=fused)
+    return sh_to_color(sh_degree, colors, dirs)
 
 
 def _rasterize_gsplat(**kw):

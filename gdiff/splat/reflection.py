@@ -31,7 +31,7 @@ from torch import nn
 from torch.nn import functional as F
 
 from .gaussians import quat_to_rotmat
-from .sh import sh_to_color
+from .sh import sh_colors
 
 INIT_RADIANCE_RAW = -5.0  # softplus(-5) ~ 0.007: no visible effect before it is learnt
 
@@ -88,13 +88,13 @@ def reflect(dirs: torch.Tensor, normals: torch.Tensor) -> torch.Tensor:
     return d - 2.0 * (d * normals).sum(-1, keepdim=True) * normals
 
 
-def shade(g, campos: torch.Tensor) -> torch.Tensor:
+def shade(g, campos: torch.Tensor, fused: bool = False) -> torch.Tensor:
     """Colours [C, N, 3] of Gaussians ``g`` (:class:`~gdiff.splat.gaussians.Gaussians`) seen
     from camera centres ``campos`` [C, 3] (world frame): SH colour plus, when ``g`` carries a
     specular term (``g.reflectivity`` [N], ``g.environment`` a callable direction -> radiance),
-    the mirror-direction highlight."""
+    the mirror-direction highlight. ``fused``: SH colours by the C++ kernel where it applies."""
     dirs = g.means[None] - campos[:, None]  # [C, N, 3], camera centre -> Gaussian
-    color = sh_to_color(g.sh_degree, g.sh[None], dirs)
+    color = sh_colors(g.sh_degree, g.sh, dirs, fused=fused)
     if g.environment is None:
         return color
     r = reflect(dirs, shortest_axis(g.quats, g.scales)[None])

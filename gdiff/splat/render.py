@@ -39,7 +39,7 @@ from ..errors import GdiffError, SceneError
 from ..io import atomic_path, write_image, write_json
 from .gaussians import Gaussians
 from .model import GaussianModel4D, load_model
-from .rasterize import camera_centers, rasterize
+from .rasterize import _pick_backend, camera_centers, rasterize
 from .reflection import shade
 
 log = logging.getLogger("gdiff.splat.render")
@@ -64,7 +64,8 @@ def rasterize_gaussians(g: Gaussians, viewmats: torch.Tensor, Ks: torch.Tensor, 
     bg = _backgrounds(background, viewmats.shape[0], g.means.device, g.means.dtype)
     colors, degree = g.sh, g.sh_degree
     if g.environment is not None and render_mode not in ("D", "ED"):
-        colors, degree = shade(g, camera_centers(viewmats)), None
+        fused = _pick_backend(backend, g.means.device) == "cpp"
+        colors, degree = shade(g, camera_centers(viewmats), fused=fused), None
     return rasterize(g.means, g.quats, g.scales, g.opacities, colors, viewmats, Ks, width, height,
                      sh_degree=degree, backgrounds=bg, render_mode=render_mode,
                      backend=backend, absgrad=absgrad)

@@ -7,8 +7,12 @@ default ``~/.cache/torch_extensions``); later processes reuse the build. If comp
 ``load(required=False)`` logs one warning and returns None, and the rasterizer falls back to
 the torch backend. Set ``GDIFF_NO_CPP=1`` to skip the kernel altogether.
 
-The build also holds ``hexplane_cpu.cpp``: :func:`hexplane_sample`, the bilinear look-up of
-the deformation field's feature planes (see :mod:`gdiff.splat.deform`).
+The build also holds ``project_cpu.cpp`` (:func:`project_cpp`, the EWA projection of
+:func:`gdiff.splat.rasterize.project_gaussians` with the 3D covariance, fused), ``sh_cpu.cpp``
+(:func:`sh_to_color_cpp`, the colour of :func:`gdiff.splat.sh.sh_to_color`) and
+``hexplane_cpu.cpp`` (:func:`hexplane_sample`, the bilinear look-up of the deformation field's
+feature planes, see :mod:`gdiff.splat.deform`). Each has a hand-written backward pass and is
+tested against its torch reference.
 
 :func:`rasterize_cpp` has the same contract as
 :func:`gdiff.splat.rasterize.rasterize_torch` (it is tested against it) and a hand-written
@@ -31,7 +35,8 @@ log = logging.getLogger("gdiff.splat.csrc")
 
 TILE_SIZE = 16
 _SRC = Path(__file__).with_name("rasterize_cpu.cpp")
-_SOURCES = [_SRC, Path(__file__).with_name("hexplane_cpu.cpp")]
+_SOURCES = [_SRC] + [Path(__file__).with_name(f) for f in
+                     ("project_cpu.cpp", "sh_cpu.cpp", "hexplane_cpu.cpp")]
 _lock = threading.Lock()
 _module = None
 _failed: str | None = None
@@ -152,6 +157,70 @@ def rasterize_cpp(means2d: torch.Tensor, conics: torch.Tensor, colors: torch.Ten
 
         means2d.register_hook(hook)
     return out, alpha
+
+
+class _ProjectCpp(torch.autograd.Function):
+    @staticmethod
+    def forward(ctx, means, quats, scales, viewmats, Ks, width, height, near_plane, far_plane,
+                eps2d, radius_clip):
+        out = load(required=True).project_forward(means, quats, scales, viewmats, Ks, width,
+                                                  height, near_plane, far_plane, eps2d,
+                                                  radius_clip)
+        ctx.save_for_backward(means, quats, scales, viewmats, Ks)
+        ctx.args = (width, height, near_plane, far_plane, eps2d)
+        ctx.mark_non_differentiable(*out[3:])
+        return tuple(out)
+
+    @staticmethod
+    def backward(ctx, g_means2d, g_conics, g_depths, *_):
+        means, quats, scales, viewmats, Ks = ctx.saved_tensors
+        g_m, g_q, g_s = load(required=True).project_backward(
+            means, quats, scales, viewmats, Ks, *ctx.args, g_means2d.contiguous(),
+            g_conics.contiguous(), g_depths.contiguous())
+        return g_m, g_q, g_s, None, None, None, None, None, None, None, None
+
+
+def project_cpp(means: torch.Tensor, quats: torch.Tensor, scales: torch.Tensor,
+                viewmats: torch.Tensor, Ks: torch.Tensor, width: int, height: int,
+                near_plane: float = 0.01, far_plane: float = 1e10, eps2d: float = 0.3,
+                radius_clip: float = 0.0) -> dict[str, torch.Tensor]:
+    """``project_gaussians(means, covariance_3d(quats, scales), ...)`` in one C++ kernel.
+
+    Args: means [N,3], quats [N,4] (w,x,y,z, any norm), scales [N,3] (activated), viewmats
+        [C,4,4] world-to-camera (OpenCV), Ks [C,3,3]; the rest as
+        :func:`gdiff.splat.rasterize.project_gaussians`, which defines the outputs (same dict).
+    Differentiable with respect to means, quats and scales; the cameras get no gradient (use
+    the torch version to optimise them).
+    """
+    dtype = means.dtype
+    m2d, conics, depths, radii, extents, visible = _ProjectCpp.apply(
+        means.contiguous(), quats.to(dtype).contiguous(), scales.to(dtype).contiguous(),
+        viewmats.detach().to(dtype).contiguous(), Ks.detach().to(dtype).contiguous(),
+        int(width), int(height), float(near_plane), float(far_plane), float(eps2d),
+        float(radius_clip))
+    return dict(means2d=m2d, conics=conics, depths=depths, radii=radii, extents=extents,
+                visible=visible)
+
+
+class _ShToColor(torch.autograd.Function):
+    @staticmethod
+    def forward(ctx, coeffs, dirs, degree):
+        ctx.save_for_backward(coeffs, dirs)
+        ctx.degree = degree
+        return load(required=True).sh_forward(coeffs, dirs, degree)
+
+    @staticmethod
+    def backward(ctx, grad):
+        coeffs, dirs = ctx.saved_tensors
+        g_c, g_d = load(required=True).sh_backward(coeffs, dirs, ctx.degree, grad.contiguous())
+        return g_c, g_d, None
+
+
+def sh_to_color_cpp(degree: int, coeffs: torch.Tensor, dirs: torch.Tensor) -> torch.Tensor:
+    """:func:`gdiff.splat.sh.sh_to_color` in one C++ kernel for coeffs [N,K,3] seen along
+    dirs [C,N,3] (world frame, any norm): colours [C,N,3], differentiable in both."""
+    dtype = coeffs.dtype
+    return _ShToColor.apply(coeffs.contiguous(), dirs.to(dtype).contiguous(), int(degree))
 
 
 class _HexPlaneSample(torch.autograd.Function):

@@ -260,3 +260,30 @@ def test_compiled_lookup_gradient_is_the_same_for_any_thread_count():
     for a, b in zip(*grads):
         assert torch.equal(a, b)
     assert any(bool(g.abs().sum() > 0) for g in grads[0])
+
+
+def test_heads_evaluated_together_equal_head_by_head():
+    """With one-layer heads the forward pass applies all heads in one matrix product; values
+    and gradients must be those of the heads applied one by one."""
+    torch.manual_seed(0)
+    d = Deformation(DeformConfig(resolution=[8, 8, 8], color_degree=1, sh_coeffs=16)).double()
+    for head in d.heads.values():
+        torch.nn.init.normal_(head[-1].weight)
+        torch.nn.init.normal_(head[-1].bias)
+    means = torch.rand(500, 3, dtype=torch.float64) * 2 - 1
+    got = d(means, 0.7)
+    h = d.trunk(d.field(means, 0.7))
+    want = {name: head(h) for name, head in d.heads.items()}
+    want["opacities"] = want["opacities"][:, 0]
+    want["sh"] = want["sh"].view(-1, 4, 3)
+    assert list(got) == list(want)
+    w = {k: torch.randn_like(v) for k, v in want.items()}
+    grads = []
+    for out in (got, want):
+        d.zero_grad()
+        sum((out[k] * w[k]).sum() for k in out).backward(retain_graph=True)
+        grads.append({n: p.grad.clone() for n, p in d.named_parameters()})
+    for k in want:
+        torch.testing.assert_close(got[k], want[k], atol=1e-12, rtol=1e-12)
+    for n in grads[1]:
+        torch.testing.assert_close(grads[0][n], grads[1][n], atol=1e-10, rtol=1e-10, msg=n)

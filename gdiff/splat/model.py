@@ -169,15 +169,21 @@ class GaussianModel4D(nn.Module):
             return base + (w.view((-1,) + (1,) * (d.dim() - 1)) if torch.is_tensor(w) else w) * d
 
         out = {"means": s["means"], "scales": s["scales"], "quats": s["quats"],
-               "opacities": change("dopacity", s["opacities"]),
-               "sh": torch.cat([change("dsh0", s["sh0"]), change("dshN", s["shN"])], dim=1)}
+               "opacities": change("dopacity", s["opacities"])}
+        sh0, shN = change("dsh0", s["sh0"]), change("dshN", s["shN"])
+        sh_delta = None
         if self.deforming and len(self):
             for name, d in self.deformation(s["means"], t).items():
-                if name == "sh" and d.shape[1] < out["sh"].shape[1]:
-                    k = d.shape[1]
-                    out["sh"] = torch.cat([out["sh"][:, :k] + d, out["sh"][:, k:]], dim=1)
+                if name == "sh":
+                    sh_delta = d
                 else:
                     out[name] = out[name] + d
+        if sh_delta is not None and sh_delta.shape[1] == sh0.shape[1]:
+            sh0, sh_delta = sh0 + sh_delta, None  # the usual case: the colour head moves sh0
+        out["sh"] = torch.cat([sh0, shN], dim=1)  # [N, K, 3]
+        if sh_delta is not None:
+            k = sh_delta.shape[1]
+            out["sh"] = torch.cat([out["sh"][:, :k] + sh_delta, out["sh"][:, k:]], dim=1)
         return out
 
     @torch.no_grad()

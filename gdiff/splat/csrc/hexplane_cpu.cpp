@@ -121,7 +121,7 @@ at::Tensor hexplane_backward(at::Tensor table, at::Tensor grad_out, at::Tensor c
   const int64_t N = coords.size(0), P = planes.size(0), F = table.size(1);
   const int64_t L = P / group, rows = table.size(0);
   const int64_t parts = std::max<int64_t>(1, std::min<int64_t>(kParts, N / 4096));
-  at::Tensor acc = at::zeros({parts, rows, F}, table.options());
+  at::Tensor acc = at::empty({parts, rows, F}, table.options());  // zeroed by its part below
   const float* T = table.data_ptr<float>();
   const float* G = grad_out.data_ptr<float>();
   const float* C = coords.data_ptr<float>();
@@ -132,6 +132,7 @@ at::Tensor hexplane_backward(at::Tensor table, at::Tensor grad_out, at::Tensor c
     std::vector<Corners> cs(group);
     for (int64_t part = pb; part < pe; ++part) {
       float* R = A + part * rows * F;
+      std::fill(R, R + rows * F, 0.f);
       for (int64_t n = part * N / parts; n < (part + 1) * N / parts; ++n) {
         for (int64_t l = 0; l < L; ++l) {
           const float* g = G + (n * L + l) * F;

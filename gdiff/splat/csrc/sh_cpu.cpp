@@ -121,7 +121,7 @@ std::vector<at::Tensor> backward_impl(const at::Tensor& coeffs, const at::Tensor
                                       int64_t degree, const at::Tensor& grad) {
   const int64_t N = coeffs.size(0), K = coeffs.size(1), C = dirs.size(0);
   const int nb = (int)((degree + 1) * (degree + 1));
-  at::Tensor gc = at::zeros({N, K, 3}, coeffs.options());
+  at::Tensor gc = at::empty({N, K, 3}, coeffs.options());  // every entry written below
   at::Tensor gd = at::empty({C, N, 3}, coeffs.options());
   const T* cp = coeffs.data_ptr<T>();
   const T* dp = dirs.data_ptr<T>();
@@ -133,6 +133,7 @@ std::vector<at::Tensor> backward_impl(const at::Tensor& coeffs, const at::Tensor
     for (int64_t n = b; n < e; ++n) {
       const T* cf = cp + n * K * 3;
       T* gcf = gcp + n * K * 3;
+      std::fill(gcf, gcf + K * 3, (T)0);
       for (int64_t c = 0; c < C; ++c) {
         const int64_t o = c * N + n;
         const T norm = unit(dp + 3 * o, u);

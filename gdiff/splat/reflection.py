@@ -92,12 +92,18 @@ def shade(g, campos: torch.Tensor, fused: bool = False) -> torch.Tensor:
     """Colours [C, N, 3] of Gaussians ``g`` (:class:`~gdiff.splat.gaussians.Gaussians`) seen
     from camera centres ``campos`` [C, 3] (world frame): SH colour plus, when ``g`` carries a
     specular term (``g.reflectivity`` [N], ``g.environment`` a callable direction -> radiance),
-    the mirror-direction highlight. ``fused``: SH colours by the C++ kernel where it applies."""
+    the mirror-direction highlight. ``fused``: SH colours and mirror directions by the C++
+    kernels (:mod:`gdiff.splat.csrc`, CPU tensors, the kernels built)."""
     dirs = g.means[None] - campos[:, None]  # [C, N, 3], camera centre -> Gaussian
     color = sh_colors(g.sh_degree, g.sh, dirs, fused=fused)
     if g.environment is None:
         return color
-    r = reflect(dirs, shortest_axis(g.quats, g.scales)[None])
+    if fused and dirs.device.type == "cpu":
+        from . import csrc
+
+        r = csrc.reflect_cpp(dirs, g.quats, g.scales)
+    else:
+        r = reflect(dirs, shortest_axis(g.quats, g.scales)[None])
     return color + g.reflectivity[None, :, None] * g.environment(r)
 
 

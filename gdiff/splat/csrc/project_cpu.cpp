@@ -15,6 +15,9 @@
 //
 // Only the gradients with respect to means, quats and scales are computed (the cameras are
 // fixed data; rasterize.py uses the torch version when they require a gradient).
+//
+// The file also holds the mirror directions of gdiff/splat/reflection.py (reflect about each
+// Gaussian's shortest axis), which need the same rotation of the quaternion and its gradient.
 
 #include <ATen/Dispatch.h>
 #include <ATen/Parallel.h>
@@ -43,6 +46,47 @@ inline void quat_rot(const T* q, T R[3][3], T qn[4], T& norm) {
   R[0][0] = 1 - 2 * (y * y + z * z); R[0][1] = 2 * (x * y - w * z); R[0][2] = 2 * (x * z + w * y);
   R[1][0] = 2 * (x * y + w * z); R[1][1] = 1 - 2 * (x * x + z * z); R[1][2] = 2 * (y * z - w * x);
   R[2][0] = 2 * (x * z - w * y); R[2][1] = 2 * (y * z + w * x); R[2][2] = 1 - 2 * (x * x + y * y);
+}
+
+// Gradient gq [4] of the raw quaternion from the gradient gR of its rotation matrix
+// (qn, norm: as returned by quat_rot).
+template <typename T>
+inline void quat_rot_backward(const T qn[4], T norm, const T gR[3][3], T* gq) {
+  const T w = qn[0], x = qn[1], y = qn[2], z = qn[3];
+  T g[4];
+  g[0] = 2 * (-z * gR[0][1] + y * gR[0][2] + z * gR[1][0] - x * gR[1][2] - y * gR[2][0] +
+              x * gR[2][1]);
+  g[1] = 2 * (y * gR[0][1] + z * gR[0][2] + y * gR[1][0] - 2 * x * gR[1][1] - w * gR[1][2] +
+              z * gR[2][0] + w * gR[2][1] - 2 * x * gR[2][2]);
+  g[2] = 2 * (-2 * y * gR[0][0] + x * gR[0][1] + w * gR[0][2] + x * gR[1][0] + z * gR[1][2] -
+              w * gR[2][0] + z * gR[2][1] - 2 * y * gR[2][2]);
+  g[3] = 2 * (-2 * z * gR[0][0] - w * gR[0][1] + x * gR[0][2] + w * gR[1][0] -
+              2 * z * gR[1][1] + y * gR[1][2] + x * gR[2][0] + y * gR[2][1]);
+  // qn = q / max(|q|, 1e-12)
+  if (norm > (T)1e-12) {
+    const T dot = qn[0] * g[0] + qn[1] * g[1] + qn[2] * g[2] + qn[3] * g[3];
+    for (int k = 0; k < 4; ++k) gq[k] = (g[k] - qn[k] * dot) / norm;
+  } else {
+    for (int k = 0; k < 4; ++k) gq[k] = g[k] / (T)1e-12;
+  }
+}
+
+// Index of the smallest of s[0..2], the first one on ties (as torch.argmin).
+template <typename T>
+inline int argmin3(const T* s) {
+  int k = 0;
+  if (s[1] < s[k]) k = 1;
+  if (s[2] < s[k]) k = 2;
+  return k;
+}
+
+// Unit vector u = d / max(|d|, 1e-12); returns |d|.
+template <typename T>
+inline T unit3(const T* d, T u[3]) {
+  const T norm = std::sqrt(d[0] * d[0] + d[1] * d[1] + d[2] * d[2]);
+  const T den = std::max(norm, (T)1e-12);
+  for (int i = 0; i < 3; ++i) u[i] = d[i] / den;
+  return norm;
 }
 
 template <typename T>
@@ -280,26 +324,84 @@ std::vector<at::Tensor> backward_impl(const at::Tensor& means, const at::Tensor&
           gR[i][j] = gM * s[j];
           gsp[3 * n + j] += gM * R[i][j];
         }
-      const T w = qn[0], x = qn[1], y = qn[2], z = qn[3];
-      T gqn[4];
-      gqn[0] = 2 * (-z * gR[0][1] + y * gR[0][2] + z * gR[1][0] - x * gR[1][2] - y * gR[2][0] +
-                    x * gR[2][1]);
-      gqn[1] = 2 * (y * gR[0][1] + z * gR[0][2] + y * gR[1][0] - 2 * x * gR[1][1] - w * gR[1][2] +
-                    z * gR[2][0] + w * gR[2][1] - 2 * x * gR[2][2]);
-      gqn[2] = 2 * (-2 * y * gR[0][0] + x * gR[0][1] + w * gR[0][2] + x * gR[1][0] +
-                    z * gR[1][2] - w * gR[2][0] + z * gR[2][1] - 2 * y * gR[2][2]);
-      gqn[3] = 2 * (-2 * z * gR[0][0] - w * gR[0][1] + x * gR[0][2] + w * gR[1][0] -
-                    2 * z * gR[1][1] + y * gR[1][2] + x * gR[2][0] + y * gR[2][1]);
-      // qn = q / max(|q|, 1e-12)
-      if (qnorm > (T)1e-12) {
-        const T dot = qn[0] * gqn[0] + qn[1] * gqn[1] + qn[2] * gqn[2] + qn[3] * gqn[3];
-        for (int kq = 0; kq < 4; ++kq) gqp[4 * n + kq] = (gqn[kq] - qn[kq] * dot) / qnorm;
-      } else {
-        for (int kq = 0; kq < 4; ++kq) gqp[4 * n + kq] = gqn[kq] / (T)1e-12;
-      }
+      quat_rot_backward(qn, qnorm, gR, gqp + 4 * n);
     }
   });
   return {gm, gq, gs};
+}
+
+// Mirror directions (gdiff/splat/reflection.py: reflect(dirs, shortest_axis(quats, scales))):
+//   d = dir / max(|dir|, 1e-12), n = column argmin(s) of R(q), r = d - 2 (d . n) n
+template <typename T>
+at::Tensor reflect_forward_impl(const at::Tensor& dirs, const at::Tensor& quats,
+                                const at::Tensor& scales) {
+  const int64_t C = dirs.size(0), N = dirs.size(1);
+  at::Tensor out = at::empty({C, N, 3}, dirs.options());
+  const T* dp = dirs.data_ptr<T>();
+  const T* qp = quats.data_ptr<T>();
+  const T* sp = scales.data_ptr<T>();
+  T* op = out.data_ptr<T>();
+  at::parallel_for(0, N, kGrain, [&](int64_t b, int64_t e) {
+    for (int64_t n = b; n < e; ++n) {
+      T R[3][3], qn[4], qnorm, d[3];
+      quat_rot(qp + 4 * n, R, qn, qnorm);
+      const int k = argmin3(sp + 3 * n);
+      const T nv[3] = {R[0][k], R[1][k], R[2][k]};
+      for (int64_t c = 0; c < C; ++c) {
+        const int64_t o = c * N + n;
+        unit3(dp + 3 * o, d);
+        const T dot = d[0] * nv[0] + d[1] * nv[1] + d[2] * nv[2];
+        for (int i = 0; i < 3; ++i) op[3 * o + i] = d[i] - 2 * dot * nv[i];
+      }
+    }
+  });
+  return out;
+}
+
+template <typename T>
+std::vector<at::Tensor> reflect_backward_impl(const at::Tensor& dirs, const at::Tensor& quats,
+                                              const at::Tensor& scales, const at::Tensor& grad) {
+  const int64_t C = dirs.size(0), N = dirs.size(1);
+  at::Tensor g_dirs = at::empty({C, N, 3}, dirs.options());
+  at::Tensor g_quats = at::empty({N, 4}, dirs.options());
+  const T* dp = dirs.data_ptr<T>();
+  const T* qp = quats.data_ptr<T>();
+  const T* sp = scales.data_ptr<T>();
+  const T* gp = grad.data_ptr<T>();
+  T* gdp = g_dirs.data_ptr<T>();
+  T* gqp = g_quats.data_ptr<T>();
+  at::parallel_for(0, N, kGrain, [&](int64_t b, int64_t e) {
+    for (int64_t n = b; n < e; ++n) {
+      T R[3][3], qn[4], qnorm, d[3];
+      quat_rot(qp + 4 * n, R, qn, qnorm);
+      const int k = argmin3(sp + 3 * n);
+      const T nv[3] = {R[0][k], R[1][k], R[2][k]};
+      T gn[3] = {0, 0, 0};
+      for (int64_t c = 0; c < C; ++c) {
+        const int64_t o = c * N + n;
+        const T norm = unit3(dp + 3 * o, d);
+        const T* g = gp + 3 * o;
+        const T dot = d[0] * nv[0] + d[1] * nv[1] + d[2] * nv[2];
+        const T gdot = g[0] * nv[0] + g[1] * nv[1] + g[2] * nv[2];
+        T gd[3];
+        for (int i = 0; i < 3; ++i) {
+          gd[i] = g[i] - 2 * gdot * nv[i];
+          gn[i] += -2 * (dot * g[i] + gdot * d[i]);
+        }
+        T* out = gdp + 3 * o;
+        if (norm > (T)1e-12) {
+          const T dd = d[0] * gd[0] + d[1] * gd[1] + d[2] * gd[2];
+          for (int i = 0; i < 3; ++i) out[i] = (gd[i] - d[i] * dd) / norm;
+        } else {
+          for (int i = 0; i < 3; ++i) out[i] = gd[i] / (T)1e-12;
+        }
+      }
+      T gR[3][3] = {{0, 0, 0}, {0, 0, 0}, {0, 0, 0}};
+      for (int i = 0; i < 3; ++i) gR[i][k] = gn[i];
+      quat_rot_backward(qn, qnorm, gR, gqp + 4 * n);
+    }
+  });
+  return {g_dirs, g_quats};
 }
 
 void check(const at::Tensor& t, const char* name, std::vector<int64_t> shape) {
@@ -349,9 +451,40 @@ std::vector<at::Tensor> project_backward(at::Tensor means, at::Tensor quats, at:
   return res;
 }
 
+void check_reflect(const at::Tensor& dirs, const at::Tensor& quats, const at::Tensor& scales) {
+  const int64_t C = dirs.size(0), N = dirs.dim() == 3 ? dirs.size(1) : -1;
+  check(dirs, "dirs", {C, N, 3}); check(quats, "quats", {N, 4}); check(scales, "scales", {N, 3});
+  TORCH_CHECK(quats.scalar_type() == dirs.scalar_type() &&
+              scales.scalar_type() == dirs.scalar_type(), "all inputs must share one dtype");
+}
+
+at::Tensor reflect_forward(at::Tensor dirs, at::Tensor quats, at::Tensor scales) {
+  check_reflect(dirs, quats, scales);
+  at::Tensor out;
+  AT_DISPATCH_FLOATING_TYPES(dirs.scalar_type(), "gdiff_reflect_forward", [&] {
+    out = reflect_forward_impl<scalar_t>(dirs, quats, scales);
+  });
+  return out;
+}
+
+std::vector<at::Tensor> reflect_backward(at::Tensor dirs, at::Tensor quats, at::Tensor scales,
+                                         at::Tensor grad) {
+  check_reflect(dirs, quats, scales);
+  check(grad, "grad", {dirs.size(0), dirs.size(1), 3});
+  std::vector<at::Tensor> res;
+  AT_DISPATCH_FLOATING_TYPES(dirs.scalar_type(), "gdiff_reflect_backward", [&] {
+    res = reflect_backward_impl<scalar_t>(dirs, quats, scales, grad);
+  });
+  return res;
+}
+
 }  // namespace
 
 TORCH_LIBRARY_FRAGMENT(gdiff_splat, m) {
+  // mirror directions [C, N, 3] of dirs [C, N, 3] about the Gaussians' shortest axes
+  m.def("reflect_forward", &reflect_forward);
+  // (grad_dirs [C, N, 3], grad_quats [N, 4])
+  m.def("reflect_backward", &reflect_backward);
   // (means2d, conics, depths, radii, extents, visible)
   m.def("project_forward", &project_forward);
   // (grad_means, grad_quats, grad_scales)

@@ -16,13 +16,14 @@ $(VENV)/.installed: pyproject.toml
 	$(BIN)/python -m pip install --quiet --upgrade pip
 	$(BIN)/python -c "import torch" 2>/dev/null || $(BIN)/python -m pip install --quiet "$(TORCH)"
 	$(BIN)/python -m pip install --quiet -e ".[test]"
+	$(BIN)/python -c "from gdiff.splat import csrc; csrc.load()"  # build the CPU kernels once (torch fallback without a compiler)
 	touch $@
 
 demo: install
 	$(BIN)/snakemake --cores 2
 
 test: install
-	$(BIN)/python -c "from gdiff.splat import csrc; csrc.load(required=True)"  # build the CPU kernel once
+	$(BIN)/python -c "from gdiff.splat import csrc; csrc.load(required=True)"  # (re)build after edits
 	$(BIN)/python -m pytest -q -n 2 --durations=15
 
 clean-results:

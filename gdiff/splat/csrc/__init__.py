@@ -1,10 +1,11 @@
-"""Compiled CPU rasterization kernel (C++ torch extension), built on first use.
+"""Compiled CPU kernels of gdiff.splat (C++ torch extension), built on first use.
 
-:func:`load` compiles ``rasterize_cpu.cpp`` with the machine's C++ compiler through
-``torch.utils.cpp_extension.load`` into torch's extension cache (about 15 s of CPU time; the
-operators are registered as ``torch.ops.gdiff_splat.*``) (``TORCH_EXTENSIONS_DIR``,
-default ``~/.cache/torch_extensions``); later processes reuse the build. If compilation fails,
-``load(required=False)`` logs one warning and returns None, and the rasterizer falls back to
+:func:`load` compiles the kernels (``kernels.cpp``, which includes every ``*_cpu.cpp`` file
+here) with the machine's C++ compiler through ``torch.utils.cpp_extension.load`` into torch's
+extension cache (one compiler run; the operators are registered as
+``torch.ops.gdiff_splat.*``) (``TORCH_EXTENSIONS_DIR``, default ``~/.cache/torch_extensions``);
+later processes reuse the build. If compilation fails, ``load(required=False)`` logs one
+warning and returns None, and the rasterizer falls back to
 the torch backend. Set ``GDIFF_NO_CPP=1`` to skip the kernel altogether.
 
 The build also holds ``project_cpu.cpp`` (:func:`project_cpp`, the EWA projection of
@@ -22,6 +23,7 @@ backward pass.
 
 from __future__ import annotations
 
+import hashlib
 import logging
 import os
 import platform
@@ -36,6 +38,7 @@ log = logging.getLogger("gdiff.splat.csrc")
 
 TILE_SIZE = 16
 _SRC = Path(__file__).with_name("rasterize_cpu.cpp")
+_UNIT = Path(__file__).with_name("kernels.cpp")  # includes the files below: one compiler run
 _SOURCES = [_SRC] + [Path(__file__).with_name(f) for f in
                      ("project_cpu.cpp", "sh_cpu.cpp", "hexplane_cpu.cpp")]
 _lock = threading.Lock()
@@ -87,10 +90,14 @@ def load(required: bool = False, verbose: bool = False):
 
                     name = f"gdiff_splat_cpu_{platform.machine()}"
                     clear_stale_lock(_get_build_directory(name, False))
-                    _load(name=name, sources=[str(p) for p in _SOURCES], verbose=verbose,
+                    # torch rebuilds when the listed source or the flags change; the
+                    # included files reach it through this hash of all of them
+                    digest = hashlib.sha1(b"".join(p.read_bytes() for p in _SOURCES))
+                    _load(name=name, sources=[str(_UNIT)], verbose=verbose,
                           is_python_module=False,
                           extra_cflags=["-O3", "-march=native", "-ffp-contract=off",
-                                        "-fno-math-errno", "-fopenmp"],
+                                        "-fno-math-errno", "-fopenmp",
+                                        f"-DGDIFF_KERNELS_SHA1={digest.hexdigest()[:16]}"],
                           extra_ldflags=["-fopenmp"])
                     _module = torch.ops.gdiff_splat
                 except Exception as e:  # compiler missing, headers missing, build error

@@ -136,6 +136,43 @@ inline void cam_cov(const T Rv[3][3], const T S[3][3], T A[3][3]) {
     for (int l = 0; l < 3; ++l) A[i][l] = RS[i][0] * Rv[l][0] + RS[i][1] * Rv[l][1] + RS[i][2] * Rv[l][2];
 }
 
+// One Gaussian (world covariance S, mean mu) in one camera: the quantities the forward pass
+// outputs and the backward pass differentiates.
+template <typename T>
+struct Projected {
+  T x, y, z, zs, rx, ry, tx, ty;  // camera-frame position, safe depth, (clamped) x/z, y/z
+  T j00, j02, j11, j12;           // Jacobian J = [[j00, 0, j02], [0, j11, j12]]
+  T A[3][3];                      // camera-frame covariance R_v S R_v^T
+  T a, b, c, det;                 // cov2d + eps2d I = [[a, b], [b, c]]
+  bool in_range, ok;              // z within [near, far]; and det > 0
+};
+
+template <typename T>
+inline void project_one(const Cam<T>& k, const T S[3][3], const T* mu, T eps, T near, T far,
+                        Projected<T>& p) {
+  p.x = k.R[0][0] * mu[0] + k.R[0][1] * mu[1] + k.R[0][2] * mu[2] + k.t[0];
+  p.y = k.R[1][0] * mu[0] + k.R[1][1] * mu[1] + k.R[1][2] * mu[2] + k.t[1];
+  p.z = k.R[2][0] * mu[0] + k.R[2][1] * mu[1] + k.R[2][2] * mu[2] + k.t[2];
+  p.in_range = p.z >= near && p.z <= far;
+  p.zs = p.in_range ? p.z : (T)1;
+  p.rx = p.x / p.zs;
+  p.ry = p.y / p.zs;
+  p.tx = p.zs * std::min(std::max(p.rx, -k.lxn), k.lxp);
+  p.ty = p.zs * std::min(std::max(p.ry, -k.lyn), k.lyp);
+  p.j00 = k.fx / p.zs; p.j02 = -k.fx * p.tx / (p.zs * p.zs);
+  p.j11 = k.fy / p.zs; p.j12 = -k.fy * p.ty / (p.zs * p.zs);
+  cam_cov(k.R, S, p.A);
+  const T(&A)[3][3] = p.A;
+  const T u0 = p.j00 * A[0][0] + p.j02 * A[2][0], u1 = p.j00 * A[0][1] + p.j02 * A[2][1],
+          u2 = p.j00 * A[0][2] + p.j02 * A[2][2];
+  const T w1 = p.j11 * A[1][1] + p.j12 * A[2][1], w2 = p.j11 * A[1][2] + p.j12 * A[2][2];
+  p.a = u0 * p.j00 + u2 * p.j02 + eps;
+  p.b = u1 * p.j11 + u2 * p.j12;
+  p.c = w1 * p.j11 + w2 * p.j12 + eps;
+  p.det = p.a * p.c - p.b * p.b;
+  p.ok = p.in_range && p.det > 0;
+}
+
 template <typename T>
 std::vector<at::Tensor> forward_impl(const at::Tensor& means, const at::Tensor& quats,
                                      const at::Tensor& scales, const at::Tensor& viewmats,
@@ -167,26 +204,10 @@ std::vector<at::Tensor> forward_impl(const at::Tensor& means, const at::Tensor& 
       for (int64_t c = 0; c < C; ++c) {
         const Cam<T>& k = cams[c];
         const int64_t o = c * N + n;
-        const T x = k.R[0][0] * mu[0] + k.R[0][1] * mu[1] + k.R[0][2] * mu[2] + k.t[0];
-        const T y = k.R[1][0] * mu[0] + k.R[1][1] * mu[1] + k.R[1][2] * mu[2] + k.t[1];
-        const T z = k.R[2][0] * mu[0] + k.R[2][1] * mu[1] + k.R[2][2] * mu[2] + k.t[2];
-        const bool in_range = z >= Tn && z <= Tf;
-        const T zs = in_range ? z : (T)1;
-        const T tx = zs * std::min(std::max(x / zs, -k.lxn), k.lxp);
-        const T ty = zs * std::min(std::max(y / zs, -k.lyn), k.lyp);
-        const T j00 = k.fx / zs, j02 = -k.fx * tx / (zs * zs);
-        const T j11 = k.fy / zs, j12 = -k.fy * ty / (zs * zs);
-        T A[3][3];
-        cam_cov(k.R, S, A);
-        // J A J^T with J = [[j00, 0, j02], [0, j11, j12]]
-        const T u0 = j00 * A[0][0] + j02 * A[2][0], u1 = j00 * A[0][1] + j02 * A[2][1],
-                u2 = j00 * A[0][2] + j02 * A[2][2];
-        const T w1 = j11 * A[1][1] + j12 * A[2][1], w2 = j11 * A[1][2] + j12 * A[2][2];
-        const T a = u0 * j00 + u2 * j02 + eps;
-        const T bb = u1 * j11 + u2 * j12;
-        const T cc = w1 * j11 + w2 * j12 + eps;
-        const T det = a * cc - bb * bb;
-        bool ok = in_range && det > 0;
+        Projected<T> p;
+        project_one(k, S, mu, eps, Tn, Tf, p);
+        const T x = p.x, y = p.y, z = p.z, zs = p.zs, a = p.a, cc = p.c, bb = p.b, det = p.det;
+        bool ok = p.ok;
         const T ds = ok ? det : (T)1;
         co[3 * o] = cc / ds; co[3 * o + 1] = -bb / ds; co[3 * o + 2] = a / ds;
         const T mx = k.fx * x / zs + k.cx, my = k.fy * y / zs + k.cy;
@@ -240,28 +261,15 @@ std::vector<at::Tensor> backward_impl(const at::Tensor& means, const at::Tensor&
       for (int64_t c = 0; c < C; ++c) {
         const Cam<T>& k = cams[c];
         const int64_t o = c * N + n;
-        const T x = k.R[0][0] * mu[0] + k.R[0][1] * mu[1] + k.R[0][2] * mu[2] + k.t[0];
-        const T y = k.R[1][0] * mu[0] + k.R[1][1] * mu[1] + k.R[1][2] * mu[2] + k.t[1];
-        const T z = k.R[2][0] * mu[0] + k.R[2][1] * mu[1] + k.R[2][2] * mu[2] + k.t[2];
-        const bool in_range = z >= Tn && z <= Tf;
-        const T zs = in_range ? z : (T)1;
-        const T rx = x / zs, ry = y / zs;
+        Projected<T> p;
+        project_one(k, S, mu, eps, Tn, Tf, p);
+        const T x = p.x, y = p.y, zs = p.zs, rx = p.rx, ry = p.ry, tx = p.tx, ty = p.ty;
+        const T j00 = p.j00, j02 = p.j02, j11 = p.j11, j12 = p.j12;
+        const T(&A)[3][3] = p.A;
+        const T a = p.a, bb = p.b, cc = p.c;
+        const bool in_range = p.in_range, ok = p.ok;
         const bool free_x = rx > -k.lxn && rx < k.lxp, free_y = ry > -k.lyn && ry < k.lyp;
-        const T tx = zs * std::min(std::max(rx, -k.lxn), k.lxp);
-        const T ty = zs * std::min(std::max(ry, -k.lyn), k.lyp);
-        const T j00 = k.fx / zs, j02 = -k.fx * tx / (zs * zs);
-        const T j11 = k.fy / zs, j12 = -k.fy * ty / (zs * zs);
-        T A[3][3];
-        cam_cov(k.R, S, A);
-        const T u0 = j00 * A[0][0] + j02 * A[2][0], u1 = j00 * A[0][1] + j02 * A[2][1],
-                u2 = j00 * A[0][2] + j02 * A[2][2];
-        const T w1 = j11 * A[1][1] + j12 * A[2][1], w2 = j11 * A[1][2] + j12 * A[2][2];
-        const T a = u0 * j00 + u2 * j02 + eps;
-        const T bb = u1 * j11 + u2 * j12;
-        const T cc = w1 * j11 + w2 * j12 + eps;
-        const T det = a * cc - bb * bb;
-        const bool ok = in_range && det > 0;
-        const T ds = ok ? det : (T)1;
+        const T ds = ok ? p.det : (T)1;
         // conic = (cc, -bb, a) / ds
         const T gc0 = gco[3 * o], gc1 = gco[3 * o + 1], gc2 = gco[3 * o + 2];
         T ga = gc2 / ds, gb = -gc1 / ds, gcc = gc0 / ds;
@@ -332,6 +340,16 @@ std::vector<at::Tensor> backward_impl(const at::Tensor& means, const at::Tensor&
 
 // Mirror directions (gdiff/splat/reflection.py: reflect(dirs, shortest_axis(quats, scales))):
 //   d = dir / max(|dir|, 1e-12), n = column argmin(s) of R(q), r = d - 2 (d . n) n
+// Column nv of R(q) along the smallest scale (its index is returned), with quat_rot's qn, norm.
+template <typename T>
+inline int shortest_axis(const T* q, const T* s, T qn[4], T& qnorm, T nv[3]) {
+  T R[3][3];
+  quat_rot(q, R, qn, qnorm);
+  const int k = argmin3(s);
+  for (int i = 0; i < 3; ++i) nv[i] = R[i][k];
+  return k;
+}
+
 template <typename T>
 at::Tensor reflect_forward_impl(const at::Tensor& dirs, const at::Tensor& quats,
                                 const at::Tensor& scales) {
@@ -343,10 +361,8 @@ at::Tensor reflect_forward_impl(const at::Tensor& dirs, const at::Tensor& quats,
   T* op = out.data_ptr<T>();
   at::parallel_for(0, N, kGrain, [&](int64_t b, int64_t e) {
     for (int64_t n = b; n < e; ++n) {
-      T R[3][3], qn[4], qnorm, d[3];
-      quat_rot(qp + 4 * n, R, qn, qnorm);
-      const int k = argmin3(sp + 3 * n);
-      const T nv[3] = {R[0][k], R[1][k], R[2][k]};
+      T qn[4], qnorm, nv[3], d[3];
+      const int k = shortest_axis(qp + 4 * n, sp + 3 * n, qn, qnorm, nv);
       for (int64_t c = 0; c < C; ++c) {
         const int64_t o = c * N + n;
         unit3(dp + 3 * o, d);
@@ -372,10 +388,8 @@ std::vector<at::Tensor> reflect_backward_impl(const at::Tensor& dirs, const at::
   T* gqp = g_quats.data_ptr<T>();
   at::parallel_for(0, N, kGrain, [&](int64_t b, int64_t e) {
     for (int64_t n = b; n < e; ++n) {
-      T R[3][3], qn[4], qnorm, d[3];
-      quat_rot(qp + 4 * n, R, qn, qnorm);
-      const int k = argmin3(sp + 3 * n);
-      const T nv[3] = {R[0][k], R[1][k], R[2][k]};
+      T qn[4], qnorm, nv[3], d[3];
+      const int k = shortest_axis(qp + 4 * n, sp + 3 * n, qn, qnorm, nv);
       T gn[3] = {0, 0, 0};
       for (int64_t c = 0; c < C; ++c) {
         const int64_t o = c * N + n;

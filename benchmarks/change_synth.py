@@ -21,12 +21,15 @@ sigma 1 px) with smooth relative noise (1 %). ``--no-depth`` runs on colour only
 from __future__ import annotations
 
 import argparse
+import sys
 import time
 from pathlib import Path
 
 import cv2
 import numpy as np
 import pandas as pd
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # gdiff from this checkout
 
 from gdiff import synth
 from gdiff.baselines import pixel_diff

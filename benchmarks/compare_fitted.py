@@ -26,12 +26,15 @@ synth preset + seed that built it.
 from __future__ import annotations
 
 import argparse
+import sys
 import json
 import time
 from pathlib import Path
 
 import numpy as np
 import pandas as pd
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # gdiff from this checkout
 
 from gdiff import synth
 from gdiff.align import umeyama_sim3

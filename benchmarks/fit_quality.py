@@ -40,6 +40,8 @@ import numpy as np
 import pandas as pd
 import torch
 
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # gdiff from this checkout
+
 from gdiff.cameras import load_cameras
 from gdiff.io import read_image, read_mask
 from gdiff.splat.losses import psnr, ssim

@@ -27,6 +27,8 @@ import tempfile
 import time
 from pathlib import Path
 
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # gdiff from this checkout
+
 from gdiff.align import pose_errors
 from gdiff.cameras import load_cameras
 from gdiff.log import setup_logging

@@ -30,8 +30,11 @@ import os
 import resource
 import sys
 import time
+from pathlib import Path
 
 import torch
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # gdiff from this checkout
 
 
 def make_scene(n: int, width: int, height: int, seed: int = 0):

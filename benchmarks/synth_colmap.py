@@ -14,6 +14,7 @@ also writes them as CSV.
 from __future__ import annotations
 
 import argparse
+import sys
 import json
 import shutil
 import tempfile
@@ -23,6 +24,8 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 import pycolmap
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # gdiff from this checkout
 
 from gdiff import synth
 from gdiff.io import read_json

@@ -40,7 +40,7 @@ TILE_SIZE = 16
 _SRC = Path(__file__).with_name("rasterize_cpu.cpp")
 _UNIT = Path(__file__).with_name("kernels.cpp")  # includes the files below: one compiler run
 _SOURCES = [_SRC] + [Path(__file__).with_name(f) for f in
-                     ("project_cpu.cpp", "sh_cpu.cpp", "hexplane_cpu.cpp")]
+                     ("project_cpu.cpp", "sh_cpu.cpp", "hexplane_cpu.cpp", "normalize.h")]
 _lock = threading.Lock()
 _module = None
 _failed: str | None = None

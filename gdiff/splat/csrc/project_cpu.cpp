@@ -31,6 +31,8 @@
 #include <cstdint>
 #include <vector>
 
+#include "normalize.h"
+
 namespace {
 
 constexpr int64_t kGrain = 1024;
@@ -39,9 +41,7 @@ constexpr int64_t kGrain = 1024;
 // 1e-12)); also returns the normalised quaternion and the norm.
 template <typename T>
 inline void quat_rot(const T* q, T R[3][3], T qn[4], T& norm) {
-  norm = std::sqrt(q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3]);
-  const T d = std::max(norm, (T)1e-12);
-  for (int k = 0; k < 4; ++k) qn[k] = q[k] / d;
+  norm = gdiff_normalize::unit<4>(q, qn);
   const T w = qn[0], x = qn[1], y = qn[2], z = qn[3];
   R[0][0] = 1 - 2 * (y * y + z * z); R[0][1] = 2 * (x * y - w * z); R[0][2] = 2 * (x * z + w * y);
   R[1][0] = 2 * (x * y + w * z); R[1][1] = 1 - 2 * (x * x + z * z); R[1][2] = 2 * (y * z - w * x);
@@ -62,13 +62,7 @@ inline void quat_rot_backward(const T qn[4], T norm, const T gR[3][3], T* gq) {
               w * gR[2][0] + z * gR[2][1] - 2 * y * gR[2][2]);
   g[3] = 2 * (-2 * z * gR[0][0] - w * gR[0][1] + x * gR[0][2] + w * gR[1][0] -
               2 * z * gR[1][1] + y * gR[1][2] + x * gR[2][0] + y * gR[2][1]);
-  // qn = q / max(|q|, 1e-12)
-  if (norm > (T)1e-12) {
-    const T dot = qn[0] * g[0] + qn[1] * g[1] + qn[2] * g[2] + qn[3] * g[3];
-    for (int k = 0; k < 4; ++k) gq[k] = (g[k] - qn[k] * dot) / norm;
-  } else {
-    for (int k = 0; k < 4; ++k) gq[k] = g[k] / (T)1e-12;
-  }
+  gdiff_normalize::unit_backward<4>(qn, norm, g, gq);  // qn = q / max(|q|, 1e-12)
 }
 
 // Index of the smallest of s[0..2], the first one on ties (as torch.argmin).
@@ -78,15 +72,6 @@ inline int argmin3(const T* s) {
   if (s[1] < s[k]) k = 1;
   if (s[2] < s[k]) k = 2;
   return k;
-}
-
-// Unit vector u = d / max(|d|, 1e-12); returns |d|.
-template <typename T>
-inline T unit3(const T* d, T u[3]) {
-  const T norm = std::sqrt(d[0] * d[0] + d[1] * d[1] + d[2] * d[2]);
-  const T den = std::max(norm, (T)1e-12);
-  for (int i = 0; i < 3; ++i) u[i] = d[i] / den;
-  return norm;
 }
 
 template <typename T>
@@ -365,7 +350,7 @@ at::Tensor reflect_forward_impl(const at::Tensor& dirs, const at::Tensor& quats,
       const int k = shortest_axis(qp + 4 * n, sp + 3 * n, qn, qnorm, nv);
       for (int64_t c = 0; c < C; ++c) {
         const int64_t o = c * N + n;
-        unit3(dp + 3 * o, d);
+        gdiff_normalize::unit<3>(dp + 3 * o, d);
         const T dot = d[0] * nv[0] + d[1] * nv[1] + d[2] * nv[2];
         for (int i = 0; i < 3; ++i) op[3 * o + i] = d[i] - 2 * dot * nv[i];
       }
@@ -393,7 +378,7 @@ std::vector<at::Tensor> reflect_backward_impl(const at::Tensor& dirs, const at::
       T gn[3] = {0, 0, 0};
       for (int64_t c = 0; c < C; ++c) {
         const int64_t o = c * N + n;
-        const T norm = unit3(dp + 3 * o, d);
+        const T norm = gdiff_normalize::unit<3>(dp + 3 * o, d);
         const T* g = gp + 3 * o;
         const T dot = d[0] * nv[0] + d[1] * nv[1] + d[2] * nv[2];
         const T gdot = g[0] * nv[0] + g[1] * nv[1] + g[2] * nv[2];
@@ -402,13 +387,7 @@ std::vector<at::Tensor> reflect_backward_impl(const at::Tensor& dirs, const at::
           gd[i] = g[i] - 2 * gdot * nv[i];
           gn[i] += -2 * (dot * g[i] + gdot * d[i]);
         }
-        T* out = gdp + 3 * o;
-        if (norm > (T)1e-12) {
-          const T dd = d[0] * gd[0] + d[1] * gd[1] + d[2] * gd[2];
-          for (int i = 0; i < 3; ++i) out[i] = (gd[i] - d[i] * dd) / norm;
-        } else {
-          for (int i = 0; i < 3; ++i) out[i] = gd[i] / (T)1e-12;
-        }
+        gdiff_normalize::unit_backward<3>(d, norm, gd, gdp + 3 * o);
       }
       T gR[3][3] = {{0, 0, 0}, {0, 0, 0}, {0, 0, 0}};
       for (int i = 0; i < 3; ++i) gR[i][k] = gn[i];

@@ -20,6 +20,8 @@
 #include <cstdint>
 #include <vector>
 
+#include "normalize.h"
+
 namespace {
 
 constexpr double C0 = 0.28209479177387814;
@@ -82,14 +84,6 @@ inline void basis(int degree, T x, T y, T z, T* b, T* bx, T* by, T* bz) {
 }
 
 template <typename T>
-inline T unit(const T* d, T u[3]) {
-  const T norm = std::sqrt(d[0] * d[0] + d[1] * d[1] + d[2] * d[2]);
-  const T den = std::max(norm, (T)1e-12);
-  for (int i = 0; i < 3; ++i) u[i] = d[i] / den;
-  return norm;
-}
-
-template <typename T>
 at::Tensor forward_impl(const at::Tensor& coeffs, const at::Tensor& dirs, int64_t degree) {
   const int64_t N = coeffs.size(0), K = coeffs.size(1), C = dirs.size(0);
   const int nb = (int)((degree + 1) * (degree + 1));
@@ -103,7 +97,7 @@ at::Tensor forward_impl(const at::Tensor& coeffs, const at::Tensor& dirs, int64_
       const T* cf = cp + n * K * 3;
       for (int64_t c = 0; c < C; ++c) {
         const int64_t o = c * N + n;
-        unit(dp + 3 * o, u);
+        gdiff_normalize::unit<3>(dp + 3 * o, u);
         basis<T>((int)degree, u[0], u[1], u[2], bs, nullptr, nullptr, nullptr);
         for (int ch = 0; ch < 3; ++ch) {
           T acc = 0;
@@ -136,7 +130,7 @@ std::vector<at::Tensor> backward_impl(const at::Tensor& coeffs, const at::Tensor
       std::fill(gcf, gcf + K * 3, (T)0);
       for (int64_t c = 0; c < C; ++c) {
         const int64_t o = c * N + n;
-        const T norm = unit(dp + 3 * o, u);
+        const T norm = gdiff_normalize::unit<3>(dp + 3 * o, u);
         basis<T>((int)degree, u[0], u[1], u[2], bs, bx, by, bz);
         T g[3];
         for (int ch = 0; ch < 3; ++ch) {
@@ -154,14 +148,7 @@ std::vector<at::Tensor> backward_impl(const at::Tensor& coeffs, const at::Tensor
           }
           gu[0] += gb * bx[k]; gu[1] += gb * by[k]; gu[2] += gb * bz[k];
         }
-        // u = d / max(|d|, 1e-12)
-        T* gdo = gdp + 3 * o;
-        if (norm > (T)1e-12) {
-          const T dot = u[0] * gu[0] + u[1] * gu[1] + u[2] * gu[2];
-          for (int i = 0; i < 3; ++i) gdo[i] = (gu[i] - u[i] * dot) / norm;
-        } else {
-          for (int i = 0; i < 3; ++i) gdo[i] = gu[i] / (T)1e-12;
-        }
+        gdiff_normalize::unit_backward<3>(u, norm, gu, gdp + 3 * o);  // u = d / max(|d|, 1e-12)
       }
     }
   });

@@ -222,6 +222,65 @@ def format_table(table: pd.DataFrame, markdown: bool = False) -> str:
     return "\n".join([fmt(head), fmt(["-" * w for w in widths])] + [fmt(c) for c in lines]) + "\n"
 
 
+def scaling_table(table: pd.DataFrame, photos: Mapping[str, int],
+                  method: str = "partition") -> pd.DataFrame:
+    """Cost against the number of photos: one row per rule (in run order) and ``total``, one
+    column per scene of ``photos`` (``scene -> photos per set``, in increasing order) with
+    its wall seconds, then per step between consecutive counts ``a -> b`` the growth factor
+    ``wall(b) / wall(a)`` next to the photos' ``b / a`` (cost grows at most linearly where
+    the first is no larger than the second); rows ``F1 (<method>)`` and ``PSNR t0`` /
+    ``PSNR t1`` carry each scene's quality (no growth factor).
+
+    ``table`` is a bench table (:func:`build_table`); a rule a scene did not run is NaN."""
+    order = sorted(photos, key=lambda s: photos[s])
+    first = table.drop_duplicates("scene").set_index("scene")
+    rules = [c[5:] for c in table.columns if c.startswith("wall_") and c != "wall_s"]
+    rows = []
+    for label, col in [(r, f"wall_{r}") for r in rules] + [("total", "wall_s")]:
+        vals = [float(first.loc[s, col]) if s in first.index else math.nan for s in order]
+        if label != "total" and all(math.isnan(v) for v in vals):
+            continue
+        row = {"row": label}
+        row.update({f"{photos[s]} s": v for s, v in zip(order, vals)})
+        for (a, va), (b, vb) in zip(zip(order, vals), list(zip(order, vals))[1:]):
+            row[f"x {photos[a]}->{photos[b]}"] = vb / va if va > 0 else math.nan
+        rows.append(row)
+    qual = table[table["method"] == method].drop_duplicates("scene").set_index("scene")
+    for label, frame, col in ((f"F1 ({method})", qual, "F1"), ("PSNR t0", first, "psnr_t0"),
+                              ("PSNR t1", first, "psnr_t1")):
+        row = {"row": label}
+        row.update({f"{photos[s]} s": float(frame.loc[s, col]) if s in frame.index
+                    else math.nan for s in order})
+        rows.append(row)
+    steps = [f"x {photos[a]}->{photos[b]}" for a, b in zip(order, order[1:])]
+    out = pd.DataFrame(rows, columns=["row"] + [f"{photos[s]} s" for s in order] + steps)
+    out.attrs["photo_ratio"] = {f"x {photos[a]}->{photos[b]}": photos[b] / photos[a]
+                                for a, b in zip(order, order[1:])}
+    return out
+
+
+def format_scaling(scaling: pd.DataFrame) -> str:
+    """:func:`scaling_table` as a markdown table: seconds with one decimal, growth factors
+    with two and the photo ratio in the header (``x 15->30 (photos x2.00)``)."""
+    ratio = scaling.attrs.get("photo_ratio", {})
+    head = ["rule"] + [f"{c[:-2]}+{c[:-2]} photos: s" if not c.startswith("x ") else
+                       f"{c} (photos x{ratio.get(c, math.nan):.2f})"
+                       for c in scaling.columns[1:]]
+    lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+    for _, r in scaling.iterrows():
+        cells = [r["row"]]
+        for c in scaling.columns[1:]:
+            if r["row"].startswith("F1"):
+                digits = 3
+            elif r["row"].startswith("PSNR") or c.startswith("x "):
+                digits = 2
+            else:
+                digits = 1
+            cells.append(_fmt(r[c], digits))
+        lines.append("| " + " | ".join(cells) + " |")
+    return "\n".join(lines) + "\n"
+
+
 def read_results(results: str | Path, scenes: Iterable[str] | None = None,
                  presets: Iterable[str] = ()) -> pd.DataFrame:
     """The bench table of a results folder (every scene folder in it, or ``scenes``), with the

@@ -75,3 +75,27 @@ def test_synth_groups_only_named_presets():
     assert Bn.synth_groups(names, ["demo", "lightchange"]) == {
         "demo": ["demo_s0", "demo_s2"], "lightchange": ["lightchange_s0"]}
     assert Bn.synth_groups(names, []) == {}
+
+
+def test_scaling_table_growth_per_step_and_quality(tmp_path):
+    res = tmp_path / "results"
+    # poses grows x3 from 10 to 20 photos (more than linear), the fit stays flat; the 40-photo
+    # scene has no partition run yet
+    _scene(res, "demo_p10", [(30, 10)], {"poses": (10, 300, 8), "fit": (100, 900, 180)})
+    _scene(res, "demo_p20", [(20, 20)], {"poses": (30, 300, 8), "fit": (110, 900, 180)},
+           psnr=(24.0, 26.0))
+    _scene(res, "demo_p40", [(10, 30)], {"poses": (45, 300, 8)})
+    photos = {"demo_p40": 40, "demo_p10": 10, "demo_p20": 20}
+    sc = Bn.scaling_table(Bn.read_results(res, list(photos)), photos, method="m").set_index("row")
+    assert list(sc.columns) == ["10 s", "20 s", "40 s", "x 10->20", "x 20->40"]
+    assert sc.attrs["photo_ratio"] == {"x 10->20": 2.0, "x 20->40": 2.0}
+    assert sc.loc["poses", "x 10->20"] == pytest.approx(3.0)
+    assert sc.loc["poses", "x 20->40"] == pytest.approx(1.5)
+    assert sc.loc["fit", "x 10->20"] == pytest.approx(1.1)
+    assert math.isnan(sc.loc["fit", "40 s"]) and math.isnan(sc.loc["fit", "x 20->40"])
+    assert sc.loc["total", "10 s"] == pytest.approx(110) and sc.loc["total", "40 s"] == 45
+    assert sc.loc["F1 (m)", "10 s"] == pytest.approx(2 * 30 / (2 * 30 + 10))
+    assert sc.loc["PSNR t1", "20 s"] == pytest.approx(26.0)
+    text = Bn.format_scaling(sc.reset_index())
+    assert "| poses | 10.0 | 30.0 | 45.0 | 3.00 | 1.50 |" in text
+    assert "x 10->20 (photos x2.00)" in text and "10+10 photos: s" in text

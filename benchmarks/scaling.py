@@ -32,8 +32,7 @@ sys.path.insert(0, str(ROOT))
 from gdiff.bench import format_scaling, read_results, scaling_table  # noqa: E402
 from gdiff.io import atomic_path, write_csv  # noqa: E402
 from gdiff.log import setup_logging  # noqa: E402
-from gdiff.synth import SynthOptions  # noqa: E402
-from gdiff.synth.writer import make_scene  # noqa: E402
+from gdiff.synth import SynthOptions, make_scene  # noqa: E402
 
 
 def main(argv=None) -> int:

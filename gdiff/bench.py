@@ -233,29 +233,25 @@ def scaling_table(table: pd.DataFrame, photos: Mapping[str, int],
 
     ``table`` is a bench table (:func:`build_table`); a rule a scene did not run is NaN."""
     order = sorted(photos, key=lambda s: photos[s])
+    secs = {s: f"{photos[s]} s" for s in order}
+    steps = {f"x {photos[a]}->{photos[b]}": (a, b) for a, b in zip(order, order[1:])}
     first = table.drop_duplicates("scene").set_index("scene")
+    qual = table[table["method"] == method].drop_duplicates("scene").set_index("scene")
     rules = [c[5:] for c in table.columns if c.startswith("wall_") and c != "wall_s"]
     rows = []
-    for label, col in [(r, f"wall_{r}") for r in rules] + [("total", "wall_s")]:
-        vals = [float(first.loc[s, col]) if s in first.index else math.nan for s in order]
-        if label != "total" and all(math.isnan(v) for v in vals):
+    for label, frame, col in ([(r, first, f"wall_{r}") for r in rules]
+                              + [("total", first, "wall_s"), (f"F1 ({method})", qual, "F1"),
+                                 ("PSNR t0", first, "psnr_t0"), ("PSNR t1", first, "psnr_t1")]):
+        v = {s: float(frame.loc[s, col]) if s in frame.index else math.nan for s in order}
+        if label in rules and all(math.isnan(x) for x in v.values()):
             continue
-        row = {"row": label}
-        row.update({f"{photos[s]} s": v for s, v in zip(order, vals)})
-        for (a, va), (b, vb) in zip(zip(order, vals), list(zip(order, vals))[1:]):
-            row[f"x {photos[a]}->{photos[b]}"] = vb / va if va > 0 else math.nan
+        row = {"row": label, **{secs[s]: v[s] for s in order}}
+        if label in rules or label == "total":  # quality rows get no growth factor
+            row.update({k: v[b] / v[a] if v[a] > 0 else math.nan
+                        for k, (a, b) in steps.items()})
         rows.append(row)
-    qual = table[table["method"] == method].drop_duplicates("scene").set_index("scene")
-    for label, frame, col in ((f"F1 ({method})", qual, "F1"), ("PSNR t0", first, "psnr_t0"),
-                              ("PSNR t1", first, "psnr_t1")):
-        row = {"row": label}
-        row.update({f"{photos[s]} s": float(frame.loc[s, col]) if s in frame.index
-                    else math.nan for s in order})
-        rows.append(row)
-    steps = [f"x {photos[a]}->{photos[b]}" for a, b in zip(order, order[1:])]
-    out = pd.DataFrame(rows, columns=["row"] + [f"{photos[s]} s" for s in order] + steps)
-    out.attrs["photo_ratio"] = {f"x {photos[a]}->{photos[b]}": photos[b] / photos[a]
-                                for a, b in zip(order, order[1:])}
+    out = pd.DataFrame(rows, columns=["row"] + list(secs.values()) + list(steps))
+    out.attrs["photo_ratio"] = {k: photos[b] / photos[a] for k, (a, b) in steps.items()}
     return out
 
 
@@ -263,8 +259,8 @@ def format_scaling(scaling: pd.DataFrame) -> str:
     """:func:`scaling_table` as a markdown table: seconds with one decimal, growth factors
     with two and the photo ratio in the header (``x 15->30 (photos x2.00)``)."""
     ratio = scaling.attrs.get("photo_ratio", {})
-    head = ["rule"] + [f"{c[:-2]}+{c[:-2]} photos: s" if not c.startswith("x ") else
-                       f"{c} (photos x{ratio.get(c, math.nan):.2f})"
+    head = ["rule"] + [f"{c} (photos x{ratio[c]:.2f})" if c in ratio else
+                       "{0}+{0} photos: s".format(c.removesuffix(" s"))
                        for c in scaling.columns[1:]]
     lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
     for _, r in scaling.iterrows():
@@ -272,7 +268,7 @@ def format_scaling(scaling: pd.DataFrame) -> str:
         for c in scaling.columns[1:]:
             if r["row"].startswith("F1"):
                 digits = 3
-            elif r["row"].startswith("PSNR") or c.startswith("x "):
+            elif r["row"].startswith("PSNR") or c in ratio:
                 digits = 2
             else:
                 digits = 1

@@ -30,6 +30,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from gdiff.bench import format_scaling, read_results, scaling_table  # noqa: E402
+from gdiff.errors import GdiffError  # noqa: E402
 from gdiff.io import atomic_path, write_csv  # noqa: E402
 from gdiff.log import setup_logging  # noqa: E402
 from gdiff.synth import SynthOptions, make_scene  # noqa: E402
@@ -50,19 +51,26 @@ def main(argv=None) -> int:
     ap.add_argument("--no-run", action="store_true", help="only read the results and print")
     args = ap.parse_args(argv)
     setup_logging()
-    counts = sorted({int(x) for x in args.photos.split(",") if x.strip()})
+    try:
+        counts = sorted({int(x) for x in args.photos.split(",") if x.strip()})
+    except ValueError:
+        counts = []
     if not counts or min(counts) < 2:
-        sys.exit("scaling: --photos needs counts of at least 2 photos per set")
+        sys.exit(f"scaling: --photos {args.photos!r}: give whole numbers of at least 2 photos "
+                 "per set, comma-separated (e.g. 15,30,60)")
     work = Path(args.results).resolve()
     scenes = work / "scenes"
     photos = {f"{args.preset}_p{n}": n for n in counts}
     if not args.no_run:
         for name, n in photos.items():
             if not (scenes / name / "meta.json").is_file():
-                preset = SynthOptions(preset=args.preset, n_before=n, n_after=n,
-                                      n_eval=args.eval, width=args.width,
-                                      height=args.height).to_preset()
-                make_scene(scenes / name, preset, args.seed, overwrite=True)
+                try:
+                    preset = SynthOptions(preset=args.preset, n_before=n, n_after=n,
+                                          n_eval=args.eval, width=args.width,
+                                          height=args.height).to_preset()
+                    make_scene(scenes / name, preset, args.seed, overwrite=True)
+                except GdiffError as e:
+                    sys.exit(f"scaling: scene {scenes / name}: {e}")
         cmd = [sys.executable, str(ROOT / "benchmarks" / "bench.py"), str(scenes),
                "--results", str(work / "bench")]
         if args.configfile:

@@ -13,6 +13,7 @@ from gdiff import synth
 from gdiff.compare import (CompareOptions, change_masks, compare, compare_paths, decide,
                            detect_changes_pair, pose_stats)
 from gdiff.errors import SceneError
+from gdiff.parallel import fork_available
 from gdiff.io import read_ids, read_image, read_mask, srgb_to_linear
 from gdiff.segment import SegmentOptions, make_segmenter, segment_and_track, track_paths
 from gdiff.segment import stage as seg_stage
@@ -118,6 +119,24 @@ def _write_exr(path, rgb_srgb, depth):
     path.parent.mkdir(parents=True, exist_ok=True)
     OpenEXR.File({"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage},
                  ch).write(str(path))
+
+
+@pytest.mark.skipif(not fork_available(), reason="needs the fork start method")
+def test_poses_judged_in_parallel_give_the_serial_result(demo_paths):
+    _, frames, _ = demo_paths
+    ids, _ = track_paths(frames, make_segmenter(SegmentOptions()), TrackOptions())
+    keys = {("p1", 0): 0, ("p1", 3): 0, ("p1", 1): 1, ("p1", 4): 1}
+    out = [compare_paths(ids, frames, CompareOptions(), keys=keys, workers=w) for w in (1, 2)]
+    (m1, df1), (m2, df2) = out
+    assert m1.keys() == m2.keys()
+    for k in m1:
+        assert all(np.array_equal(a, b) for a, b in zip(m1[k], m2[k])), k
+    pd.testing.assert_frame_equal(df1, df2)
+    e1, e2 = df1.attrs["evidence3d"], df2.attrs["evidence3d"]
+    assert e1.keys() == e2.keys() and "geometry" in e1
+    for k in e1:
+        assert e1[k][0] == e2[k][0] and all(np.array_equal(a, b)
+                                            for a, b in zip(e1[k][1:], e2[k][1:]))
 
 
 def test_stage_files(demo_paths, tmp_path, monkeypatch):

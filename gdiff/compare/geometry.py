@@ -73,6 +73,42 @@ class _Pose:
     keys: list = field(default_factory=lambda: [None, None])   # per time: int64 [K]
 
 
+@dataclass
+class PoseRecord:
+    """One pose's share of a :class:`GeometryEvidence` (:func:`pose_record`)."""
+    pose: _Pose
+    flags: list          # per time: float32 [K, 3] world points of the flagged pixels
+    looks: list          # per time: float32 [L, 3] world points of the looks
+    scales: list         # per time with a surface: median z / fx
+
+
+def pose_record(depth0: np.ndarray, depth1: np.ndarray, camera, flagged0: np.ndarray,
+                flagged1: np.ndarray, looked0: np.ndarray, looked1: np.ndarray,
+                points: tuple[np.ndarray, np.ndarray] | None = None,
+                stride: int = 2) -> PoseRecord:
+    """What :meth:`GeometryEvidence.add` keeps of one pose (arguments as there; ``stride``:
+    the evidence's look sampling). Depends on this pose alone, so poses can be recorded in
+    parallel."""
+    rec = _Pose(tuple(depth0.shape))
+    sub = np.zeros(depth0.shape, bool)
+    sub[::stride, ::stride] = True
+    if points is None:
+        points = (world_points(depth0, camera), world_points(depth1, camera))
+    flags, looks, scales = [], [], []
+    for t, (z, fl, lk) in enumerate(((depth0, flagged0, looked0), (depth1, flagged1, looked1))):
+        P = points[t].reshape(-1, 3)
+        ok = np.isfinite(P).all(-1)
+        fl = np.asarray(fl, bool).ravel() & ok
+        lk = (np.asarray(lk, bool).ravel() & sub.ravel() & ok) | fl
+        rec.idx[t] = np.flatnonzero(fl)
+        flags.append(P[rec.idx[t]].astype(np.float32))
+        looks.append(P[lk].astype(np.float32))
+        zz = np.asarray(z)[np.isfinite(z) & (z > 0)]
+        if zz.size:
+            scales.append(float(np.median(zz)) / float(camera.fx))
+    return PoseRecord(rec, flags, looks, scales)
+
+
 class GeometryEvidence:
     """Accumulates the per-pose evidence (:meth:`add`), then decides (:meth:`finish`) and
     returns per pose the change pixels of each time (:meth:`masks`). See the module docstring.
@@ -111,24 +147,20 @@ class GeometryEvidence:
         intrinsics) and the bool [H, W] masks of :func:`pose_flags`: ``flagged0`` vanished
         (t0) and ``flagged1`` appeared (t1) surfaces, ``looked{t}`` pixels whose surface at
         time t counts as a look. ``points``: the world points [H, W, 3] of the two depths
-        (:func:`gdiff.track.world_points`) when the caller has them already."""
-        rec = _Pose(tuple(depth0.shape))
-        sub = np.zeros(depth0.shape, bool)
-        sub[::self.stride, ::self.stride] = True
-        if points is None:
-            points = (world_points(depth0, camera), world_points(depth1, camera))
-        for t, (z, fl, lk) in enumerate(((depth0, flagged0, looked0), (depth1, flagged1, looked1))):
-            P = points[t].reshape(-1, 3)
-            ok = np.isfinite(P).all(-1)
-            fl = np.asarray(fl, bool).ravel() & ok
-            lk = (np.asarray(lk, bool).ravel() & sub.ravel() & ok) | fl
-            rec.idx[t] = np.flatnonzero(fl)
-            self._flags[t].append(P[rec.idx[t]].astype(np.float32))
-            self._looks[t].append(P[lk].astype(np.float32))
-            zz = np.asarray(z)[np.isfinite(z) & (z > 0)]
-            if zz.size:
-                self._scale.append(float(np.median(zz)) / float(camera.fx))
-        self._poses[pose] = rec
+        (:func:`gdiff.track.world_points`) when the caller has them already.
+
+        The same as ``put(pose, pose_record(...))``: poses may be recorded in parallel and put
+        in their order (the result depends only on that order)."""
+        self.put(pose, pose_record(depth0, depth1, camera, flagged0, flagged1, looked0,
+                                   looked1, points, self.stride))
+
+    def put(self, pose, record: "PoseRecord") -> None:
+        """Add one pose's :func:`pose_record` (poses in a fixed order give a fixed result)."""
+        for t in (0, 1):
+            self._flags[t].append(record.flags[t])
+            self._looks[t].append(record.looks[t])
+        self._scale.extend(record.scales)
+        self._poses[pose] = record.pose
 
     def _keys(self, P: np.ndarray) -> np.ndarray:
         return _pack(np.floor(P / self.voxel)) if len(P) else np.zeros(0, np.int64)

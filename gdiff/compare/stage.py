@@ -26,10 +26,12 @@ from ..errors import SceneError
 from ..frames import TIMES, Key, key_frames, read_frame, read_sequence
 from ..io import read_ids, read_json, write_csv, write_mask
 from ..log import progress
+from ..parallel import ordered_map
 from ..track import world_points
 from .change import CompareOptions, appearance_change, change_masks, decide, pose_stats
 from .coverage import DepthView, observed, surface
-from .geometry import GeometryEvidence, flat_flags, pose_flags, write_evidence
+from .geometry import (GeometryEvidence, flat_flags, pose_flags, pose_record,
+                       write_evidence)
 
 log = logging.getLogger("gdiff.compare")
 
@@ -48,9 +50,63 @@ def key_views(frames, keys: dict[tuple[str, int], int] | None) -> dict[int, list
     return out
 
 
+class _JudgePose:
+    """The per-pose part of :func:`compare_paths` (depends on that pose alone, so poses can be
+    judged in parallel): called with ``(path, i)``, returns ``(stats entry, judged pixel counts
+    or None, geometry record or None, flat record or None)``."""
+
+    def __init__(self, ids, get, o: CompareOptions, views, geo_stride: int | None,
+                 flat_stride: int | None):
+        self.ids, self.get, self.o, self.views = ids, get, o, views
+        self.geo_stride, self.flat_stride = geo_stride, flat_stride
+
+    def __call__(self, pose):
+        p, i = pose
+        o, get, views = self.o, self.get, self.views
+        f0, f1 = get((p, "t0", i)), get((p, "t1", i))
+        cam = f0.get("camera")
+        seen = [None, None]  # per time: depth determined there (observed), shown by a photo
+        if views is not None and cam is not None:
+            for time, f in enumerate((f0, f1)):
+                if f.get("depth") is not None and views[time]:
+                    seen[time] = observed(f["depth"], cam, views[time], o.observed_depth_tol,
+                                          o.observed_min_views, f.get("alpha"),
+                                          min_parallax=o.observed_min_parallax,
+                                          max_views=o.observed_max_views, seen=True)
+        obs = [s[0] if s is not None else None for s in seen]
+        shown = [s[1] if s is not None else None for s in seen]
+        judged = None
+        if all(m is not None for m in obs + shown):
+            both = surface(f0["depth"], f0.get("alpha")) & surface(f1["depth"], f1.get("alpha"))
+            judged = np.array([int(both.sum()), int((shown[0] & shown[1]).sum()),
+                               int((obs[0] & obs[1]).sum())], np.int64)
+        stats = (f"{p}/{i:05d}", pose_stats(
+            self.ids[(p, "t0", i)], self.ids[(p, "t1", i)], o, f0.get("rgb"), f1.get("rgb"),
+            f0.get("depth"), f1.get("depth"), focal=cam.fx if cam is not None else None,
+            camera=cam, observed0=obs[0], observed1=obs[1], seen0=shown[0], seen1=shown[1]))
+        z0, z1 = f0.get("depth"), f1.get("depth")
+        have_depth = cam is not None and z0 is not None and z1 is not None
+        g_rec = f_rec = None
+        if have_depth and (self.geo_stride is not None or self.flat_stride is not None):
+            known = obs[0] & obs[1] if obs[0] is not None and obs[1] is not None else None
+            differ = None
+            if f0.get("rgb") is not None and f1.get("rgb") is not None:
+                differ = appearance_change(f0["rgb"], f1["rgb"], o.chroma_tol, o.ncc_min)
+            points = (world_points(z0, cam), world_points(z1, cam))
+            if self.geo_stride is not None:
+                g_rec = pose_record(z0, z1, cam, *pose_flags(z0, z1, o.depth_change_rel,
+                                                             o.evidence_open, known, differ),
+                                    points=points, stride=self.geo_stride)
+            if self.flat_stride is not None and differ is not None:
+                f_rec = pose_record(z0, z1, cam, *flat_flags(z0, z1, o.depth_change_rel,
+                                                             o.evidence_open, known, differ),
+                                    points=points, stride=self.flat_stride)
+        return stats, judged, g_rec, f_rec
+
+
 def compare_paths(ids: dict[Key, np.ndarray], frames: dict[Key, dict] | None,
                   options: CompareOptions | None = None,
-                  keys: dict[tuple[str, int], int] | None = None
+                  keys: dict[tuple[str, int], int] | None = None, workers: int = 1
                   ) -> tuple[dict[tuple[str, int], tuple[np.ndarray, np.ndarray]], pd.DataFrame]:
     """Change masks per pose from the tracked ID maps.
 
@@ -59,7 +115,9 @@ def compare_paths(ids: dict[Key, np.ndarray], frames: dict[Key, dict] | None,
     may also be a callable key -> frame dict (to load lazily). ``keys`` (optional):
     ``{(path, i): time}`` of the path frames that are training cameras (key frames) of that
     time; with them only pixels a training photo of each time saw are compared
-    (:mod:`gdiff.compare.coverage`). Returns ({(path, i): (mask_t0, mask_t1)}, changes table: id,
+    (:mod:`gdiff.compare.coverage`). ``workers``: processes the poses are judged on
+    (:func:`gdiff.parallel.ordered_map`; the result does not depend on it). Returns
+    ({(path, i): (mask_t0, mask_t1)}, changes table: id,
     changed, type, partner, n_t0, n_t1, n_confirmed, first, last, area, instance). The table's
     ``attrs["evidence3d"]`` holds the changed voxels of the 3D evidence, ``{"geometry" | "flat":
     (voxel side, keys at t0, keys at t1)}`` (see :func:`gdiff.compare.geometry.write_evidence`).
@@ -74,43 +132,18 @@ def compare_paths(ids: dict[Key, np.ndarray], frames: dict[Key, dict] | None,
                             o.geometry_min_object) if o.geometry else None)
     flat = (GeometryEvidence(o.geometry_voxel_px, o.geometry_vote, o.geometry_min_poses,
                              o.geometry_min_object) if o.flat else None)
-    for p, i in progress(poses, desc="compare"):
-        f0, f1 = get((p, "t0", i)), get((p, "t1", i))
-        cam = f0.get("camera")
-        seen = [None, None]  # per time: depth determined there (observed), shown by a photo
-        if views is not None and cam is not None:
-            for time, f in enumerate((f0, f1)):
-                if f.get("depth") is not None and views[time]:
-                    seen[time] = observed(f["depth"], cam, views[time], o.observed_depth_tol,
-                                          o.observed_min_views, f.get("alpha"),
-                                          min_parallax=o.observed_min_parallax,
-                                          max_views=o.observed_max_views, seen=True)
-        obs = [s[0] if s is not None else None for s in seen]
-        shown = [s[1] if s is not None else None for s in seen]
-        if all(m is not None for m in obs + shown):
-            both = surface(f0["depth"], f0.get("alpha")) & surface(f1["depth"], f1.get("alpha"))
-            judged += [int(both.sum()), int((shown[0] & shown[1]).sum()),
-                       int((obs[0] & obs[1]).sum())]
-        stats.append((f"{p}/{i:05d}", pose_stats(
-            ids[(p, "t0", i)], ids[(p, "t1", i)], o, f0.get("rgb"), f1.get("rgb"),
-            f0.get("depth"), f1.get("depth"), focal=cam.fx if cam is not None else None,
-            camera=cam, observed0=obs[0], observed1=obs[1], seen0=shown[0], seen1=shown[1])))
-        z0, z1 = f0.get("depth"), f1.get("depth")
-        have_depth = cam is not None and z0 is not None and z1 is not None
-        if have_depth and (geo is not None or flat is not None):
-            known = obs[0] & obs[1] if obs[0] is not None and obs[1] is not None else None
-            differ = None
-            if f0.get("rgb") is not None and f1.get("rgb") is not None:
-                differ = appearance_change(f0["rgb"], f1["rgb"], o.chroma_tol, o.ncc_min)
-            points = (world_points(z0, cam), world_points(z1, cam))
-            if geo is not None:
-                geo.add((p, i), z0, z1, cam, *pose_flags(z0, z1, o.depth_change_rel,
-                                                         o.evidence_open, known, differ),
-                        points=points)
-            if flat is not None and differ is not None:
-                flat.add((p, i), z0, z1, cam, *flat_flags(z0, z1, o.depth_change_rel,
-                                                          o.evidence_open, known, differ),
-                         points=points)
+    judge = _JudgePose(ids, get, o, views, geo.stride if geo is not None else None,
+                       flat.stride if flat is not None else None)
+    results = ordered_map(judge, poses, workers)
+    for pose, (st, jd, g_rec, f_rec) in zip(poses, progress(results, desc="compare",
+                                                           total=len(poses))):
+        stats.append(st)
+        if jd is not None:
+            judged += jd
+        if g_rec is not None:
+            geo.put(pose, g_rec)
+        if f_rec is not None:
+            flat.put(pose, f_rec)
     if judged[0]:
         log.info("coverage: a photo of each time shows %.1f %% of the rendered surface (judged "
                  "by ID and appearance); its depth is observed (>= %d key views per time, "
@@ -283,7 +316,8 @@ def _rims(flat: GeometryEvidence, masks, n: int, band: int) -> np.ndarray:
     return np.flatnonzero(near >= 0.75 * np.maximum(new, 1))
 
 
-def compare(instances_dir, poses_json, out_dir, options: CompareOptions | None = None) -> dict:
+def compare(instances_dir, poses_json, out_dir, options: CompareOptions | None = None,
+            workers: int = 1) -> dict:
     """Stage ``compare``: change masks of every pose from the tracked IDs.
 
     Reads ``instances_dir/index.json`` (and through it the ID maps and the rendered EXR frames,
@@ -292,7 +326,8 @@ def compare(instances_dir, poses_json, out_dir, options: CompareOptions | None =
     ``out_dir/changes.csv`` (id, type, partner, first/last pose, area, instance: the object a
     changed ID is a piece of, ...) and last
     ``out_dir/keyframes.csv`` (path, frame, image, set, time, mask_t0, mask_t1, mask_union;
-    mask paths relative to the parent of ``out_dir``, i.e. results/<scene>/).
+    mask paths relative to the parent of ``out_dir``, i.e. results/<scene>/). ``workers``:
+    processes the poses are judged on (the files do not depend on it).
     """
     instances_dir, out_dir = Path(instances_dir), Path(out_dir)
     index = read_json(instances_dir / "index.json")
@@ -318,7 +353,7 @@ def compare(instances_dir, poses_json, out_dir, options: CompareOptions | None =
     def load(key):
         return keyed[key] if key in keyed else read(key)
 
-    masks, df = compare_paths(ids, load, options, keys=keys)
+    masks, df = compare_paths(ids, load, options, keys=keys, workers=workers)
     root = out_dir.parent
     rows = []
     for (p, i), (m0, m1) in sorted(masks.items()):

@@ -34,6 +34,7 @@ rule compare:
         evidence=res("{scene}", "change", "evidence3d.npz"),
     params:
         options=options("compare"),
+    threads: 2
     conda:
         "../envs/gdiff.yaml"
     log:

@@ -9,4 +9,5 @@ from gdiff.stage import run_stage
 run_stage(snakemake, lambda: compare(
     Path(snakemake.input.index).parent, snakemake.input.poses,
     Path(snakemake.output.keyframes).parent,
-    from_config(CompareOptions, snakemake.params.options, "compare")))
+    from_config(CompareOptions, snakemake.params.options, "compare"),
+    workers=snakemake.threads))

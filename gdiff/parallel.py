@@ -27,13 +27,13 @@ def _call(item):
 
 
 def _worker_init() -> None:
-    # one thread per worker: the workers are the parallelism (and OpenCV's own pool is not
-    # carried over a fork)
-    try:
-        import cv2
-        cv2.setNumThreads(1)
-    except ImportError:  # pragma: no cover - OpenCV is a dependency
-        pass
+    # one thread per worker: the workers are the parallelism. OpenCV's and the BLAS libraries'
+    # own pools would otherwise put two threads of each worker on every core.
+    import cv2
+    from threadpoolctl import threadpool_limits
+
+    cv2.setNumThreads(1)
+    threadpool_limits(1)
 
 
 def fork_available() -> bool:

@@ -128,6 +128,7 @@ class TrackFrame:
     name: free label for logs and tables (e.g. ("p1", "t0", 7)).
     time: 0 (before) or 1 (after), or None when unknown.
     key: the frame is the pose of a training photo of its own time (its tracks skip the vote).
+    cache: what is computed once per frame and used by every propagation into it.
     """
 
     labels: np.ndarray
@@ -138,6 +139,7 @@ class TrackFrame:
     name: Hashable | None = None
     time: float | None = None
     key: bool = False
+    cache: dict = field(default_factory=dict, repr=False, compare=False)
 
 
 @dataclass
@@ -186,6 +188,22 @@ def _same_pose(a: TrackFrame, b: TrackFrame) -> bool:
     return False
 
 
+def _camera_points(f: TrackFrame) -> tuple[np.ndarray, np.ndarray]:
+    """Homogeneous points [H * W, 4] float64 of ``f``'s depth at its pixel centres, in its
+    camera frame (OpenCV axes), and bool [H * W] where the depth is a surface (finite, > 0).
+    Computed once per frame (``f.cache``): a frame is propagated into from several others."""
+    if "points" not in f.cache:
+        cd = f.camera
+        z = f.depth.astype(np.float64)
+        H, W = z.shape
+        jj, ii = np.mgrid[0:H, 0:W]
+        x = (ii + 0.5 - cd.cx) / cd.fx * z
+        y = (jj + 0.5 - cd.cy) / cd.fy * z
+        P = np.stack([x, y, z, np.ones_like(z)], -1).reshape(-1, 4)
+        f.cache["points"] = (P, np.isfinite(z.ravel()) & (z.ravel() > 0))
+    return f.cache["points"]
+
+
 def reproject_ids(ids_src: np.ndarray, src: TrackFrame, dst: TrackFrame,
                   depth_tol_rel: float) -> np.ndarray:
     """Carry ``ids_src`` [Hs, Ws] of ``src`` onto the pixel grid of ``dst`` by reprojection.
@@ -196,16 +214,12 @@ def reproject_ids(ids_src: np.ndarray, src: TrackFrame, dst: TrackFrame,
     [Hd, Wd], 0 where no ID is carried.
     """
     cd, cs = dst.camera, src.camera
-    z = dst.depth.astype(np.float64)
-    H, W = z.shape
-    jj, ii = np.mgrid[0:H, 0:W]
-    x = (ii + 0.5 - cd.cx) / cd.fx * z
-    y = (jj + 0.5 - cd.cy) / cd.fy * z
-    P = np.stack([x, y, z, np.ones_like(z)], -1).reshape(-1, 4)
+    H, W = dst.depth.shape
+    P, valid = _camera_points(dst)
     T = cs.w2c @ cd.c2w  # dst camera -> src camera
     Q = P @ T.T
     zs = Q[:, 2]
-    ok = np.isfinite(z.ravel()) & (z.ravel() > 0) & (zs > 1e-9)
+    ok = valid & (zs > 1e-9)
     u = np.where(ok, cs.fx * Q[:, 0] / np.where(ok, zs, 1) + cs.cx, -1)
     v = np.where(ok, cs.fy * Q[:, 1] / np.where(ok, zs, 1) + cs.cy, -1)
     Hs, Ws = ids_src.shape

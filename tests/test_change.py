@@ -122,9 +122,13 @@ def _write_exr(path, rgb_srgb, depth):
 
 
 @pytest.mark.skipif(not fork_available(), reason="needs the fork start method")
-def test_poses_judged_in_parallel_give_the_serial_result(demo_paths):
+def test_frames_segmented_and_poses_judged_in_parallel_give_the_serial_result(demo_paths):
     _, frames, _ = demo_paths
-    ids, _ = track_paths(frames, make_segmenter(SegmentOptions()), TrackOptions())
+    seg = make_segmenter(SegmentOptions())
+    ids, tracks = track_paths(frames, seg, TrackOptions())
+    ids2, tracks2 = track_paths(frames, seg, TrackOptions(), workers=2)
+    assert ids.keys() == ids2.keys() and all(np.array_equal(ids[k], ids2[k]) for k in ids)
+    pd.testing.assert_frame_equal(tracks, tracks2)
     keys = {("p1", 0): 0, ("p1", 3): 0, ("p1", 1): 1, ("p1", 4): 1}
     out = [compare_paths(ids, frames, CompareOptions(), keys=keys, workers=w) for w in (1, 2)]
     (m1, df1), (m2, df2) = out

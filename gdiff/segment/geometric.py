@@ -235,6 +235,9 @@ def grow_into(labels: np.ndarray, todo: np.ndarray, feat: np.ndarray, max_iter: 
 class GeometricSegmenter:
     """Weight-free segmenter (``segment.backend: geometric``); see the module docstring."""
 
+    # frames may be segmented in forked worker processes (plain numpy / OpenCV, no state)
+    parallel_safe = True
+
     def __init__(self, options: SegmentOptions | None = None):
         self.options = options or SegmentOptions()
 

@@ -23,6 +23,7 @@ from ..errors import SceneError
 from ..frames import TIMES, Key, key_frames, read_frame, read_sequence, render_files
 from ..io import MAX_ID, write_csv, write_ids, write_image, write_json
 from ..log import progress
+from ..parallel import ordered_map
 from ..track import TrackFrame, TrackOptions, chain_order, labels_from_instances, track_sequence
 from .base import Segmenter, SegmentOptions, make_segmenter
 
@@ -39,10 +40,11 @@ class _Chain(Sequence):
     """
 
     def __init__(self, order: list[Key], get, segmenter: Segmenter, keep: int,
-                 key_poses: dict[tuple[str, int], int] | None = None):
+                 key_poses: dict[tuple[str, int], int] | None = None,
+                 labels: dict[int, np.ndarray] | None = None):
         self.order, self.get, self.segmenter, self.keep = order, get, segmenter, max(2, keep)
         self.key_poses = key_poses or {}
-        self.labels: dict[int, np.ndarray] = {}
+        self.labels: dict[int, np.ndarray] = dict(labels or {})  # segmented ahead, if given
         self.cache: OrderedDict[int, TrackFrame] = OrderedDict()
 
     def __len__(self):
@@ -55,14 +57,10 @@ class _Chain(Sequence):
             self.cache.move_to_end(k)
             return self.cache[k]
         key = self.order[k]
-        f = self.get(key)
-        if not f:
-            raise SceneError(f"rendered frame {key} missing (every path needs the same frames "
-                             "at t0 and t1); re-run the render stage")
+        f = _frame(self.get, key)
         cam = f.get("camera")
         if k not in self.labels:
-            self.labels[k] = segment_labels(self.segmenter, f["rgb"], f.get("depth"),
-                                            f.get("alpha"), cam.K if cam is not None else None)
+            self.labels[k] = _segment_frame(self.segmenter, f)
         tf = TrackFrame(labels=self.labels[k], rgb=f["rgb"], depth=f.get("depth"), camera=cam,
                         pose_key=(key[0], key[2]), name=key, time=TIMES.index(key[1]),
                         key=(key[0], key[2]) in self.key_poses)
@@ -70,6 +68,30 @@ class _Chain(Sequence):
         while len(self.cache) > self.keep:
             self.cache.popitem(last=False)
         return tf
+
+
+def _frame(get, key: Key) -> dict:
+    f = get(key)
+    if not f:
+        raise SceneError(f"rendered frame {key} missing (every path needs the same frames "
+                         "at t0 and t1); re-run the render stage")
+    return f
+
+
+def _segment_frame(segmenter: Segmenter, f: dict) -> np.ndarray:
+    cam = f.get("camera")
+    return segment_labels(segmenter, f["rgb"], f.get("depth"), f.get("alpha"),
+                          cam.K if cam is not None else None)
+
+
+class _SegmentAhead:
+    """Segment labels of one frame key, read through ``get`` (run in a worker process)."""
+
+    def __init__(self, get, segmenter: Segmenter):
+        self.get, self.segmenter = get, segmenter
+
+    def __call__(self, key: Key) -> np.ndarray:
+        return _segment_frame(self.segmenter, _frame(self.get, key))
 
 
 def segment_labels(segmenter: Segmenter, rgb: np.ndarray, depth=None, alpha=None,
@@ -83,7 +105,7 @@ def segment_labels(segmenter: Segmenter, rgb: np.ndarray, depth=None, alpha=None
 
 
 def track_paths(frames, segmenter: Segmenter, track_options: TrackOptions | None = None,
-                key_poses: dict[tuple[str, int], int] | None = None
+                key_poses: dict[tuple[str, int], int] | None = None, workers: int = 1
                 ) -> tuple[dict[Key, np.ndarray], pd.DataFrame]:
     """Segment and track all frames in one ID space.
 
@@ -94,7 +116,9 @@ def track_paths(frames, segmenter: Segmenter, track_options: TrackOptions | None
     to read frames on demand (then only a few frames are held in memory at a time).
     ``key_poses`` (optional, :func:`gdiff.frames.key_frames`): ``{(path, i): time}`` of the poses of
     the training photos; the frames of such a pose (at both times) are key frames of the tracker
-    (:attr:`gdiff.track.TrackFrame.key`).
+    (:attr:`gdiff.track.TrackFrame.key`). ``workers`` > 1: the frames are segmented ahead on
+    that many processes (:func:`gdiff.parallel.ordered_map`; only segmenters with
+    ``parallel_safe``), then tracked here in order; the result does not depend on it.
     Returns (ID map int32 [H, W] per key, tracks table with id, first, last, n_frames,
     mean_area; first/last as "path/t/NNNNN").
     """
@@ -113,8 +137,12 @@ def track_paths(frames, segmenter: Segmenter, track_options: TrackOptions | None
         raise SceneError(f"rendered frames missing for {missing[:3]} (every path needs the same "
                          "frames at t0 and t1); re-run the render stage")
     o = track_options or TrackOptions()
+    labels = None
+    if workers > 1 and getattr(segmenter, "parallel_safe", False):
+        segmented = ordered_map(_SegmentAhead(get, segmenter), order, workers, chunksize=4)
+        labels = dict(enumerate(progress(segmented, desc="segment", total=len(order))))
     chain = _Chain(order, get, segmenter, keep=o.max_missed + 3,
-                   key_poses=key_poses)
+                   key_poses=key_poses, labels=labels)
     res = track_sequence(chain, o)
     ids = {key: m for key, m in zip(order, res.ids)}
     tracks = res.tracks.copy()
@@ -138,14 +166,15 @@ def _overlay(rgb: np.ndarray, ids: np.ndarray) -> np.ndarray:
 
 
 def segment_and_track(render_dir, poses_json, out_dir, options: SegmentOptions | None = None,
-                      track_options: TrackOptions | None = None) -> dict:
+                      track_options: TrackOptions | None = None, workers: int = 1) -> dict:
     """Stage ``segment``: ID maps of every rendered frame in one ID space.
 
     Reads ``render_dir/<path>/<t0|t1>/NNNNN.exr`` for every pose of ``poses_json``; writes
     ``out_dir/<path>/<t>/NNNNN.png`` (uint16 IDs), ``out_dir/tracks.csv`` and last
     ``out_dir/index.json`` (render_dir, frames, files); with ``options.overlays`` also
     ``out_dir/overlay/<path>/<t>/NNNNN.jpg`` (stale overlays are removed otherwise).
-    Returns a summary dict (frames, tracks).
+    ``workers``: processes the frames are segmented on (:func:`track_paths`; the files do not
+    depend on it). Returns a summary dict (frames, tracks).
     """
     render_dir, out_dir = Path(render_dir), Path(out_dir)
     cams, meta = read_sequence(poses_json)
@@ -159,7 +188,7 @@ def segment_and_track(render_dir, poses_json, out_dir, options: SegmentOptions |
 
     # frames are read on demand (all of them at once would not fit in memory on long paths)
     ids, tracks = track_paths((list(files), load), seg, track_options,
-                               key_poses=key_frames(meta))
+                              key_poses=key_frames(meta), workers=workers)
     if len(tracks) > MAX_ID:  # checked before anything is written
         raise SceneError(
             f"{render_dir}: {len(tracks)} instance tracks over {len(ids)} frames, more than the "

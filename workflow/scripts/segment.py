@@ -16,7 +16,7 @@ def main():
     return segment_and_track(
         Path(snakemake.input.index).parent, snakemake.input.poses,
         Path(snakemake.output.index).parent, seg,
-        from_config(TrackOptions, snakemake.params.track, "track"))
+        from_config(TrackOptions, snakemake.params.track, "track"), workers=snakemake.threads)
 
 
 run_stage(snakemake, main)

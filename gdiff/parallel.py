@@ -12,6 +12,7 @@ not available (Windows, macOS defaults) or ``workers`` is 1, the loop runs in th
 
 from __future__ import annotations
 
+import contextlib
 import multiprocessing as mp
 from collections.abc import Callable, Iterable, Iterator
 from typing import TypeVar
@@ -26,14 +27,23 @@ def _call(item):
     return _FN(item)
 
 
-def _worker_init() -> None:
-    # one thread per worker: the workers are the parallelism. OpenCV's and the BLAS libraries'
-    # own pools would otherwise put two threads of each worker on every core.
+@contextlib.contextmanager
+def _one_thread_each():
+    """OpenCV and the BLAS libraries on one thread while the workers are forked, so that each
+    worker inherits that (the workers are the parallelism; their own pools would put two
+    threads of each worker on every core). Set here, in the parent, and restored after the
+    fork: changing a thread pool inside a forked child can deadlock on a lock another thread
+    of the parent held at the fork."""
     import cv2
     from threadpoolctl import threadpool_limits
 
+    n_cv = cv2.getNumThreads()
     cv2.setNumThreads(1)
-    threadpool_limits(1)
+    try:
+        with threadpool_limits(1):
+            yield
+    finally:
+        cv2.setNumThreads(n_cv)
 
 
 def fork_available() -> bool:
@@ -56,7 +66,9 @@ def ordered_map(fn: Callable[[T], R], items: Iterable[T], workers: int = 1,
     previous, _FN = _FN, fn
     try:
         ctx = mp.get_context("fork")
-        with ctx.Pool(min(workers, len(items)), initializer=_worker_init) as pool:
+        with _one_thread_each():
+            pool = ctx.Pool(min(workers, len(items)))
+        with pool:
             yield from pool.imap(_call, items, chunksize=max(1, chunksize))
     finally:
         _FN = previous

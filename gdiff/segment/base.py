@@ -71,7 +71,11 @@ def mask_bbox(mask: np.ndarray) -> tuple[int, int, int, int]:
 
 @runtime_checkable
 class Segmenter(Protocol):
-    """Splits one image into instances. See the module docstring for shapes and units."""
+    """Splits one image into instances. See the module docstring for shapes and units.
+
+    A segmenter class may set ``parallel_safe = True`` when its frames can be segmented in
+    forked worker processes (no state, no threads of its own); the segment stage then
+    segments ahead on the rule's threads (:func:`gdiff.segment.stage.track_paths`)."""
 
     def segment(self, rgb: np.ndarray, depth: np.ndarray | None = None,
                 alpha: np.ndarray | None = None, K: np.ndarray | None = None) -> list[Instance]:

@@ -139,6 +139,8 @@ def track_paths(frames, segmenter: Segmenter, track_options: TrackOptions | None
     o = track_options or TrackOptions()
     labels = None
     if workers > 1 and getattr(segmenter, "parallel_safe", False):
+        # the workers read each frame for its labels only; the tracker reads it again when it
+        # gets there (holding every frame's images until then would not fit on long paths)
         segmented = ordered_map(_SegmentAhead(get, segmenter), order, workers, chunksize=4)
         labels = dict(enumerate(progress(segmented, desc="segment", total=len(order))))
     chain = _Chain(order, get, segmenter, keep=o.max_missed + 3,

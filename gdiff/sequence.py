@@ -16,6 +16,10 @@ through the before poses) at t=0 and t=1, and P~2 (the after poses) at t=0 and t
 Frames are rendered at the intrinsics of ``sequence/poses.json`` (the photos' size); with
 ``max_side`` > 0 the cameras are scaled down so the longest side is at most ``max_side``, and
 ``frames.json`` then records the scaled intrinsics and the ``scale``.
+
+Frames are written (EXR compression, PNG previews) on one background thread while the next
+batch is rasterised; OpenEXR and OpenCV release the GIL while they compress. Every frame is
+written before ``frames.json``; a failed write stops the stage with that error.
 """
 
 from __future__ import annotations
@@ -23,6 +27,7 @@ from __future__ import annotations
 import logging
 import math
 import os
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -154,6 +159,49 @@ def psnr(a: np.ndarray, b: np.ndarray) -> float:
     return float("inf") if mse == 0 else -10.0 * math.log10(mse)
 
 
+class FrameWriter:
+    """Runs file writes on one background thread, at most ``max_pending`` queued at once (so
+    the rendered batches waiting to be written stay few). ``submit(fn, *args)`` queues
+    ``fn(*args)``; ``close()`` waits for all of them and raises the first error. Use as a
+    context manager; leaving it on an exception waits for the queued writes and discards
+    their errors (the first one is already propagating)."""
+
+    def __init__(self, max_pending: int = 32):
+        self._pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="gdiff-write")
+        self._pending: list[Future] = []
+        self._max = max(1, int(max_pending))
+        self.wait_seconds = 0.0  # time the caller spent waiting for the writer
+
+    def submit(self, fn, *args, **kwargs) -> None:
+        import time
+
+        while len(self._pending) >= self._max:
+            tic = time.perf_counter()
+            self._pending.pop(0).result()
+            self.wait_seconds += time.perf_counter() - tic
+        self._pending.append(self._pool.submit(fn, *args, **kwargs))
+
+    def close(self) -> None:
+        import time
+
+        tic = time.perf_counter()
+        try:
+            while self._pending:
+                self._pending.pop(0).result()
+        finally:
+            self._pool.shutdown(wait=True)
+            self.wait_seconds += time.perf_counter() - tic
+
+    def __enter__(self) -> "FrameWriter":
+        return self
+
+    def __exit__(self, exc_type, exc, tb) -> None:
+        if exc_type is None:
+            self.close()
+        else:
+            self._pool.shutdown(wait=True)
+
+
 def render_sequences(model_path: str | os.PathLike, poses_json: str | os.PathLike,
                      out_dir: str | os.PathLike, options: RenderOptions | None = None,
                      device="auto", scene_dir: str | os.PathLike | None = None) -> dict:
@@ -227,63 +275,66 @@ def render_sequences(model_path: str | os.PathLike, poses_json: str | os.PathLik
             for i, (c, k) in enumerate(zip(cl, keys[p]))]}
     seconds = {"model": 0.0, "raster": 0.0, "write": 0.0}
     bar = progress(total=total, desc="render", unit="frame")
+    writer = FrameWriter()
     try:
-        for tn, t in TIMES.items():
-            tic = time.perf_counter()
-            with torch.no_grad():
-                g = model.at_time(t)  # once per time, shared by both paths
-            seconds["model"] += time.perf_counter() - tic
-            for p, cl in cams.items():
-                show = set(sheet_indices(keys[p], opts.sheet_max_frames))
-                folder = out / p / tn
-                folder.mkdir(parents=True, exist_ok=True)
-                for stale in list(folder.glob("*.exr")) + list(folder.glob("*.png")):
-                    stale.unlink()
-                thumbs, labels, tkeys = [], [], []
-                exr_files, png_files = [], []
-                for s in range(0, len(cl), opts.batch):
-                    chunk = cl[s:s + opts.batch]
-                    tic = time.perf_counter()
-                    with torch.no_grad():
-                        r = render(model, chunk, t, background=bg, render_mode="RGB+ED",
-                                   gaussians=g, chunk=opts.batch)
-                    rgb = r["rgb"].clamp_min(0).cpu().numpy()
-                    alpha = r["alpha"].cpu().numpy()
-                    depth = r["depth"].cpu().numpy()
-                    seconds["raster"] += time.perf_counter() - tic
-                    tic = time.perf_counter()
-                    for j, cam in enumerate(chunk):
-                        i = s + j
-                        name = f"{i:05d}"
-                        attrs = {"worldToCamera": cam.w2c.astype(np.float32),
-                                 "gdiff_path": p, "gdiff_time": float(t), "gdiff_frame": i}
-                        write_frame(folder / f"{name}.exr", rgb[j], alpha[j], depth[j],
-                                    attributes=attrs, compression=opts.compression,
-                                    dwa_level=opts.dwa_level)
-                        exr_files.append(f"{p}/{tn}/{name}.exr")
-                        preview = np.clip(rgb[j], 0.0, 1.0)
-                        if opts.previews:
-                            write_image(folder / f"{name}.png", preview)
-                            png_files.append(f"{p}/{tn}/{name}.png")
-                        if i in show:
-                            thumbs.append(_thumb(preview, opts.sheet_thumb_side))
-                            labels.append(f"{i}" + (f" {Path(cam.image).stem}"
-                                                    if cam.image else ""))
-                            tkeys.append(keys[p][i])
-                        if scene_dir is not None and keys[p][i] and KEY_SET[p][0] == tn:
-                            photo = read_image(photo_root / cam.image)
-                            if photo.shape[:2] != preview.shape[:2]:
-                                photo = cv2.resize(photo, preview.shape[1::-1],
-                                                   interpolation=cv2.INTER_AREA)
-                            key_psnr.setdefault(p, {})[cam.image] = psnr(preview, photo)
-                    seconds["write"] += time.perf_counter() - tic
-                    bar.update(len(chunk))
-                sheet = out / p / f"{tn}_sheet.png"
-                write_image(sheet, contact_sheet(thumbs, labels, tkeys, opts.sheet_columns))
-                index["paths"][p][tn] = {"time": t, "exr": exr_files, "png": png_files,
-                                         "sheet": f"{p}/{tn}_sheet.png"}
+        with writer:
+            for tn, t in TIMES.items():
+                tic = time.perf_counter()
+                with torch.no_grad():
+                    g = model.at_time(t)  # once per time, shared by both paths
+                seconds["model"] += time.perf_counter() - tic
+                for p, cl in cams.items():
+                    show = set(sheet_indices(keys[p], opts.sheet_max_frames))
+                    folder = out / p / tn
+                    folder.mkdir(parents=True, exist_ok=True)
+                    for stale in list(folder.glob("*.exr")) + list(folder.glob("*.png")):
+                        stale.unlink()
+                    thumbs, labels, tkeys = [], [], []
+                    exr_files, png_files = [], []
+                    for s in range(0, len(cl), opts.batch):
+                        chunk = cl[s:s + opts.batch]
+                        tic = time.perf_counter()
+                        with torch.no_grad():
+                            r = render(model, chunk, t, background=bg, render_mode="RGB+ED",
+                                       gaussians=g, chunk=opts.batch)
+                        rgb = r["rgb"].clamp_min(0).cpu().numpy()
+                        alpha = r["alpha"].cpu().numpy()
+                        depth = r["depth"].cpu().numpy()
+                        seconds["raster"] += time.perf_counter() - tic
+                        tic = time.perf_counter()
+                        for j, cam in enumerate(chunk):
+                            i = s + j
+                            name = f"{i:05d}"
+                            attrs = {"worldToCamera": cam.w2c.astype(np.float32),
+                                     "gdiff_path": p, "gdiff_time": float(t), "gdiff_frame": i}
+                            writer.submit(write_frame, folder / f"{name}.exr", rgb[j], alpha[j],
+                                          depth[j], attributes=attrs, compression=opts.compression,
+                                          dwa_level=opts.dwa_level)
+                            exr_files.append(f"{p}/{tn}/{name}.exr")
+                            preview = np.clip(rgb[j], 0.0, 1.0)
+                            if opts.previews:
+                                writer.submit(write_image, folder / f"{name}.png", preview)
+                                png_files.append(f"{p}/{tn}/{name}.png")
+                            if i in show:
+                                thumbs.append(_thumb(preview, opts.sheet_thumb_side))
+                                labels.append(f"{i}" + (f" {Path(cam.image).stem}"
+                                                        if cam.image else ""))
+                                tkeys.append(keys[p][i])
+                            if scene_dir is not None and keys[p][i] and KEY_SET[p][0] == tn:
+                                photo = read_image(photo_root / cam.image)
+                                if photo.shape[:2] != preview.shape[:2]:
+                                    photo = cv2.resize(photo, preview.shape[1::-1],
+                                                       interpolation=cv2.INTER_AREA)
+                                key_psnr.setdefault(p, {})[cam.image] = psnr(preview, photo)
+                        seconds["write"] += time.perf_counter() - tic
+                        bar.update(len(chunk))
+                    sheet = out / p / f"{tn}_sheet.png"
+                    write_image(sheet, contact_sheet(thumbs, labels, tkeys, opts.sheet_columns))
+                    index["paths"][p][tn] = {"time": t, "exr": exr_files, "png": png_files,
+                                             "sheet": f"{p}/{tn}_sheet.png"}
     finally:
         bar.close()
+    seconds["write_wait"] = writer.wait_seconds
     summary = {"frames": {p: len(c) for p, c in cams.items()},
                "width": ref.width, "height": ref.height,
                "seconds": round(time.time() - t_start, 2),

@@ -231,3 +231,48 @@ def test_render_errors(tmp_path):
     with pytest.raises(SceneError, match="paths"):
         render_sequences(tmp_path / "model.pt", tmp_path / "poses.json", tmp_path / "r",
                          device="cpu")
+
+
+def test_frame_writer_runs_every_write_and_raises_the_first_error():
+    from gdiff.sequence import FrameWriter
+
+    done = []
+    with FrameWriter(max_pending=2) as w:
+        for i in range(7):
+            w.submit(done.append, i)
+    assert done == list(range(7))  # one thread: in the order submitted
+
+    def boom(i):
+        if i == 3:
+            raise OSError(f"disk full at {i}")
+        done.append(i)
+
+    done.clear()
+    w = FrameWriter(max_pending=2)
+    with pytest.raises(OSError, match="disk full at 3"):
+        with w:
+            for i in range(6):
+                w.submit(boom, i)
+    assert 3 not in done
+
+
+def test_render_stops_on_a_failed_frame_write_without_an_index(rendered, tmp_path, monkeypatch):
+    """A frame that cannot be written (full disk, permissions) fails the stage with that error,
+    and frames.json (the stage's completion marker) is not written."""
+    import gdiff.sequence as sq
+
+    tmp = rendered[0]
+    real = sq.write_frame
+    calls = []
+
+    def failing(path, *a, **kw):
+        calls.append(path)
+        if len(calls) == 5:
+            raise OSError(f"{path}: No space left on device")
+        return real(path, *a, **kw)
+
+    monkeypatch.setattr(sq, "write_frame", failing)
+    with pytest.raises(OSError, match="No space left on device"):
+        render_sequences(tmp / "model.pt", tmp / "poses.json", tmp_path / "r",
+                         RenderOptions(batch=2, previews=False), device="cpu")
+    assert not (tmp_path / "r" / "frames.json").exists()

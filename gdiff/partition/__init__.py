@@ -42,12 +42,17 @@ L3d (kNN KL), plus the fit stage's L1 + L_TV when the geometry is fine-tuned too
   stage's memory, so it is kept compact: key views at ``frozen_scale`` of the training size
   (targets area-averaged), pairs grouped by pixel (a pair stores an int32 Gaussian index and
   a float16 weight), a pixel's faintest pairs dropped up to a small total weight, computed in
-  bands of rows (bounded transient memory); it is released before the joint phase. The
-  remaining steps fine-tune the fitted Gaussians too (the paper's total loss, at
-  ``geometry_lr_scale`` x the fit's final learning rates), rasterizing colour + the
-  1-channel change logit: Gaussians that straddle a changed object's outline adapt (synth
-  demo, exact masks, union map F1 at 0.5:
-  0.948 frozen throughout, 0.978 two-phase, 0.982 joint throughout at 1.6x the time).
+  bands of rows (bounded transient memory); it is released before the joint phase. With
+  ``geometry_lr_scale`` > 0 the remaining steps fine-tune the fitted Gaussians too (the
+  paper's total loss, at ``geometry_lr_scale`` x the fit's final learning rates), rasterizing
+  colour + the 1-channel change logit, so Gaussians that straddle a changed object's outline
+  adapt to the masks. That fits the key views' masks more closely, errors included: the
+  compare stage's masks are not exact (a torus's hole, contact shadows, fragments), and
+  Gaussians reshaped to follow them carry the errors to every other view, at about three
+  times the cost of a frozen step. The default (``geometry_lr_scale`` 0) therefore keeps the
+  fitted model frozen throughout and learns only the encodings and the head; the change maps
+  then render from the fit's own geometry. With exact masks (a synthetic scene's ground
+  truth) the joint phase sharpens the outlines instead.
 * Map threshold (``threshold``): ``None`` (the default) keeps 0.5, the probability a
   BCE-trained head calls even, unless the probability threshold whose union maps best
   reproduce the compare stage's union masks at the key views (max pooled F1 over a 0.01

@@ -27,7 +27,9 @@ class PartitionOptions:
     knn_refresh: int = 200            # rebuild the KD-tree of centres every this many L3d calls
     lr_encoding: float = 0.02         # Adam learning rate of the encodings
     lr_head: float = 0.005            # Adam learning rate of the 1x1 convolution
-    geometry_lr_scale: float = 1.0    # x the fit's final learning rates in the geometry phase
+    geometry_lr_scale: float = 0.0    # x the fit's final learning rates in the joint phase
+                                      # (0 = the fitted Gaussians stay frozen: see the
+                                      # package docstring for why that is the default)
     frozen_iterations: int = 400      # first steps with the fitted Gaussians frozen (cached blend
                                       # weights: fast); later steps also fine-tune them with
                                       # L1 + L_TV (render every step). >= iterations or

@@ -490,8 +490,8 @@ def tiny_partition(tiny_fit):
     res, scene_dir = tiny_fit
     summary = train_partition(res / "fit" / "model.pt", res / "poses" / "cameras.json",
                               res / "change" / "keyframes.csv", scene_dir, res / "partition",
-                              PartitionOptions(iterations=150, frozen_iterations=100,
-                                               checkpoint_every=100, log_every=25),
+                              PartitionOptions(iterations=150, checkpoint_every=100,
+                                               log_every=25),
                               device="cpu")
     return res, summary
 
@@ -525,17 +525,17 @@ def test_tiny_change_map_at_held_out_views_overlaps_ground_truth(tiny_partition,
         assert r["mask"].shape == gt.shape
         counts += confusion(r["mask"], gt)
     s = scores_from_counts(*counts)
-    # measured IoU 0.89 / P 0.98 / R 0.91 (pooled over the 3 eval views; 0.81 / 0.95 / 0.85
-    # with the geometry frozen throughout, 0.74 / 0.96 / 0.76 frozen and with the other time's
-    # changed pixels supervised as unchanged); an untrained head predicts nothing (IoU 0) and
-    # a random split IoU ~0.04 (changed fraction)
+    # default options (geometry frozen throughout): IoU 0.81 / P 0.95 / R 0.85 when written
+    # (pooled over the 3 eval views; 0.74 / 0.96 / 0.76 with the other time's changed pixels
+    # supervised as unchanged); an untrained head predicts nothing (IoU 0) and a random split
+    # IoU ~0.04 (changed fraction)
     assert s["IoU"] > 0.7 and s["P"] > 0.85 and s["R"] > 0.75, s
-    # the joint phase moved the fitted Gaussians a little (final fit learning rates)
+    # by default the change maps render from the fit's own geometry, untouched
     from gdiff.splat.model import load_model
 
     fit = load_model(res / "fit" / "model.pt", "cpu")
-    d = (pm.fit.splats["means"] - fit.splats["means"]).norm(dim=-1)
-    assert 0 < d.max() < 0.05 * fit.meta["extent"]
+    for name, value in fit.splats.items():
+        assert torch.equal(pm.fit.splats[name], value), name
 
 
 def test_operating_point_moves_off_one_half_only_for_a_real_gain():

@@ -11,13 +11,14 @@ flagged farther than the margin from every box).
 
 Per scene (the same value on each of its rows):
 
-* per rule ``wall_<rule>`` (s), ``cpu_<rule>`` (user + system s), ``mb_<rule>`` (peak resident
+* per rule ``wall_<rule>`` (s), ``cpu_<rule>`` (user + system s), ``mb_<rule>`` (peak
   MB), from Snakemake's benchmark files ``<scene>/benchmarks/<rule>.tsv`` (the figures the summary
   rule copies into ``timings.csv``; read from the TSVs so a run still in progress is covered,
   else from ``timings.csv``);
 * ``wall_s`` and ``cpu_s``: the sums over the scene's rules (its stages run one after another,
   so ``wall_s`` is the scene's whole-workflow wall time when it runs alone), ``peak_mb`` the
-  largest rule peak;
+  largest rule peak; a rule's memory (``mb_<rule>``) is its peak PSS where Snakemake measured
+  one (pages shared by a rule's forked workers counted once), else its peak RSS sum;
 * ``disk_mb``: size of the files under ``<scene>/`` (MB = 10^6 bytes);
 * ``psnr_t0``, ``psnr_t1``: the fit's PSNR (dB) per time, mean over the eval views from
   ``eval/fit_quality.csv`` (the evaluate rule renders the fitted model there), else over the
@@ -92,7 +93,7 @@ def fit_psnr(scene_results: str | Path) -> dict:
 
 
 def scene_timings(results: str | Path, scenes: Iterable[str]) -> pd.DataFrame:
-    """``scene, rule, seconds, cpu_seconds, max_rss_mb`` per scene and rule: from the
+    """``scene, rule, seconds, cpu_seconds, max_rss_mb, max_pss_mb`` per scene and rule: from the
     benchmark TSVs, else from ``results/timings.csv`` (module docstring)."""
     results = Path(results)
     t = collect_timings(find_benchmarks({s: results / s / "benchmarks" for s in scenes}))
@@ -122,7 +123,8 @@ def build_table(summary: pd.DataFrame, timings: pd.DataFrame, scene_info: Mappin
     """The bench table (module docstring) from its parts.
 
     ``summary``: per (scene, method) rows of :func:`gdiff.summary.summarize_metrics` (rows of
-    scene ``ALL`` are ignored); ``timings``: ``scene, rule, seconds, cpu_seconds, max_rss_mb``;
+    scene ``ALL`` are ignored); ``timings``: ``scene, rule, seconds, cpu_seconds, max_rss_mb``
+    (and ``max_pss_mb`` when present);
     ``scene_info``: per scene ``disk_mb``, ``psnr_t0``, ``psnr_t1``, ``psnr_views``;
     ``groups``: ``{preset: [scenes]}`` whose means are appended as ``<preset> (mean of N)``.
     Scenes without metrics (no eval views, or evaluate not run yet) get one row with an empty
@@ -135,6 +137,11 @@ def build_table(summary: pd.DataFrame, timings: pd.DataFrame, scene_info: Mappin
     rules = [r for r in RULE_ORDER if r in set(timings["rule"])]
     rules += sorted(set(timings["rule"]) - set(rules))
     per_scene = {}
+    timings = timings.copy()
+    mem = timings["max_rss_mb"]
+    if "max_pss_mb" in timings.columns:  # timings.csv of older runs have RSS only
+        mem = timings["max_pss_mb"].where(timings["max_pss_mb"].notna(), mem)
+    timings["mb"] = mem
     for s in scenes:
         t = timings[timings["scene"] == s].set_index("rule")
         row: dict = {}
@@ -142,10 +149,10 @@ def build_table(summary: pd.DataFrame, timings: pd.DataFrame, scene_info: Mappin
             have = r in t.index
             row[f"wall_{r}"] = float(t.loc[r, "seconds"]) if have else math.nan
             row[f"cpu_{r}"] = float(t.loc[r, "cpu_seconds"]) if have else math.nan
-            row[f"mb_{r}"] = float(t.loc[r, "max_rss_mb"]) if have else math.nan
+            row[f"mb_{r}"] = float(t.loc[r, "mb"]) if have else math.nan
         row["wall_s"] = float(t["seconds"].sum(min_count=1)) if len(t) else math.nan
         row["cpu_s"] = float(t["cpu_seconds"].sum(min_count=1)) if len(t) else math.nan
-        row["peak_mb"] = float(t["max_rss_mb"].max()) if len(t) else math.nan
+        row["peak_mb"] = float(t["mb"].max()) if len(t) else math.nan
         info = scene_info.get(s, {})
         for c in ("disk_mb", "psnr_t0", "psnr_t1"):
             row[c] = float(info.get(c, math.nan))

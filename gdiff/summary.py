@@ -9,7 +9,9 @@ Writes into ``out_dir`` (``results/``), atomically:
   every scene (``<m>_pooled``; e.g. ``obj_R_pooled``, the object recall: objects found over
   objects);
 * ``timings.csv`` — one row per (scene, rule) from Snakemake's ``benchmark:`` TSVs: wall
-  ``seconds`` (mean over repeats), ``cpu_seconds``, ``max_rss_mb`` (largest over repeats);
+  ``seconds`` (mean over repeats), ``cpu_seconds``, ``max_rss_mb`` and ``max_pss_mb`` (largest
+  over repeats; RSS summed over a rule's processes counts pages they share once per process,
+  PSS splits them, so PSS is the memory a rule with forked workers really holds);
 * ``plots/<metric>.png`` — grouped bars, scene x method, for F1, IoU, P, R (pooled), box F1,
   box AP and object recall (pooled); ``plots/timings.png`` — stacked seconds per rule for each
   scene.
@@ -83,7 +85,8 @@ def summarize_metrics(metrics: pd.DataFrame, boxes: pd.DataFrame | None) -> pd.D
 
 def read_benchmark(path: str | Path) -> dict[str, float]:
     """One Snakemake benchmark TSV -> ``seconds`` (mean over repeats), ``cpu_seconds``,
-    ``max_rss_mb`` (max over repeats); NaN where Snakemake wrote NA or nothing."""
+    ``max_rss_mb`` and ``max_pss_mb`` (max over repeats); NaN where Snakemake wrote NA or
+    nothing."""
     path = Path(path)
     if not path.is_file():
         raise SceneError(f"{path}: benchmark file not found")
@@ -101,7 +104,8 @@ def read_benchmark(path: str | Path) -> dict[str, float]:
         return float(fn(v)) if v.notna().any() else float("nan")
 
     return {"seconds": col("s", np.mean), "cpu_seconds": col("cpu_time", np.mean),
-            "max_rss_mb": col("max_rss", np.max), "repeats": int(len(df))}
+            "max_rss_mb": col("max_rss", np.max), "max_pss_mb": col("max_pss", np.max),
+            "repeats": int(len(df))}
 
 
 def find_benchmarks(folders: Mapping[str, str | Path]) -> dict[tuple[str, str], Path]:
@@ -116,10 +120,10 @@ def find_benchmarks(folders: Mapping[str, str | Path]) -> dict[tuple[str, str], 
 
 def collect_timings(benchmark_tsvs: Mapping[tuple[str, str], str | Path]) -> pd.DataFrame:
     """``{(scene, rule): tsv}`` -> table ``scene, rule, seconds, cpu_seconds, max_rss_mb,
-    repeats`` sorted by scene then rule."""
+    max_pss_mb, repeats`` sorted by scene then rule."""
     rows = [{"scene": s, "rule": r, **read_benchmark(p)}
             for (s, r), p in benchmark_tsvs.items()]
-    cols = ["scene", "rule", "seconds", "cpu_seconds", "max_rss_mb", "repeats"]
+    cols = ["scene", "rule", "seconds", "cpu_seconds", "max_rss_mb", "max_pss_mb", "repeats"]
     return pd.DataFrame(rows, columns=cols).sort_values(["scene", "rule"], ignore_index=True)
 
 

@@ -138,10 +138,10 @@ def build_table(summary: pd.DataFrame, timings: pd.DataFrame, scene_info: Mappin
     rules += sorted(set(timings["rule"]) - set(rules))
     per_scene = {}
     timings = timings.copy()
-    mem = timings["max_rss_mb"]
     if "max_pss_mb" in timings.columns:  # timings.csv of older runs have RSS only
-        mem = timings["max_pss_mb"].where(timings["max_pss_mb"].notna(), mem)
-    timings["mb"] = mem
+        timings["mb"] = timings["max_pss_mb"].combine_first(timings["max_rss_mb"])
+    else:
+        timings["mb"] = timings["max_rss_mb"]
     for s in scenes:
         t = timings[timings["scene"] == s].set_index("rule")
         row: dict = {}

@@ -27,6 +27,7 @@ from __future__ import annotations
 import logging
 import math
 import os
+from collections import deque
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
@@ -162,43 +163,28 @@ def psnr(a: np.ndarray, b: np.ndarray) -> float:
 class FrameWriter:
     """Runs file writes on one background thread, at most ``max_pending`` queued at once (so
     the rendered batches waiting to be written stay few). ``submit(fn, *args)`` queues
-    ``fn(*args)``; ``close()`` waits for all of them and raises the first error. Use as a
-    context manager; leaving it on an exception waits for the queued writes and discards
-    their errors (the first one is already propagating)."""
+    ``fn(*args)``. Use as a context manager: a clean exit waits for every write and raises the
+    first error; an exit on an exception waits for the queued writes and discards their errors
+    (the first one is already propagating)."""
 
     def __init__(self, max_pending: int = 32):
         self._pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="gdiff-write")
-        self._pending: list[Future] = []
+        self._pending: deque[Future] = deque()
         self._max = max(1, int(max_pending))
-        self.wait_seconds = 0.0  # time the caller spent waiting for the writer
 
     def submit(self, fn, *args, **kwargs) -> None:
-        import time
-
         while len(self._pending) >= self._max:
-            tic = time.perf_counter()
-            self._pending.pop(0).result()
-            self.wait_seconds += time.perf_counter() - tic
+            self._pending.popleft().result()
         self._pending.append(self._pool.submit(fn, *args, **kwargs))
-
-    def close(self) -> None:
-        import time
-
-        tic = time.perf_counter()
-        try:
-            while self._pending:
-                self._pending.pop(0).result()
-        finally:
-            self._pool.shutdown(wait=True)
-            self.wait_seconds += time.perf_counter() - tic
 
     def __enter__(self) -> "FrameWriter":
         return self
 
     def __exit__(self, exc_type, exc, tb) -> None:
-        if exc_type is None:
-            self.close()
-        else:
+        try:
+            while exc_type is None and self._pending:
+                self._pending.popleft().result()
+        finally:
             self._pool.shutdown(wait=True)
 
 
@@ -275,9 +261,8 @@ def render_sequences(model_path: str | os.PathLike, poses_json: str | os.PathLik
             for i, (c, k) in enumerate(zip(cl, keys[p]))]}
     seconds = {"model": 0.0, "raster": 0.0, "write": 0.0}
     bar = progress(total=total, desc="render", unit="frame")
-    writer = FrameWriter()
     try:
-        with writer:
+        with FrameWriter() as writer:
             for tn, t in TIMES.items():
                 tic = time.perf_counter()
                 with torch.no_grad():
@@ -334,7 +319,6 @@ def render_sequences(model_path: str | os.PathLike, poses_json: str | os.PathLik
                                              "sheet": f"{p}/{tn}_sheet.png"}
     finally:
         bar.close()
-    seconds["write_wait"] = writer.wait_seconds
     summary = {"frames": {p: len(c) for p, c in cams.items()},
                "width": ref.width, "height": ref.height,
                "seconds": round(time.time() - t_start, 2),

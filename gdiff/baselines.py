@@ -11,6 +11,9 @@ taking an :class:`gdiff.evaluate.EvalView` (eval before/after images, eval camer
   surface appeared, vanished or, under the same light, changed appearance:
   ``gdiff.compare.geometry``), seen from the eval camera through the fitted model's depth at
   t=0 and t=1; no learning. It shows what the 3D evidence contributes to the partition.
+* :func:`render_diff_method` — the fitted 4D model alone: :func:`pixel_diff` of the model
+  rendered at the eval camera at t=0 and t=1 (no segmentation, IDs or learning). It shows how
+  much of a change the fit itself holds, from any viewpoint, before the later stages judge it.
 * :func:`partition_method` — the learned change map rendered by the partition model at the
   eval camera: ``gdiff.partition``.
 
@@ -211,6 +214,21 @@ def evidence3d_method(evidence: Any, depth: Callable[[Any, float], np.ndarray]
         return Prediction(m0 | m1)
 
     method.__name__ = "evidence3d"
+    return method
+
+
+def render_diff_method(render: Renderer, blur_sigma: float = 2.0, min_threshold: float = 0.05
+                       ) -> Callable[["EvalView"], Prediction]:
+    """:func:`pixel_diff` of the fitted model's renders at the eval camera at t=0 and t=1
+    (``render(camera, t) -> rgb [H, W, 3]``, at the ground-truth mask's size)."""
+
+    def method(view: "EvalView") -> Prediction:
+        if view.camera is None:
+            raise MethodNotApplicable(f"view {view.name} has no eval camera in cameras.json")
+        cam = view.camera_at_gt_size()
+        return pixel_diff(render(cam, 0.0), render(cam, 1.0), blur_sigma, min_threshold)
+
+    method.__name__ = "render_diff"
     return method
 
 

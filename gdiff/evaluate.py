@@ -23,7 +23,7 @@ is an eval view (its stem, with or without extension) or a training image: a pat
 folder (``after/v00.png``) or a bare file name, taken from ``after/`` when it is there, else
 from ``before/``. Eval views with boxes get box scores beside their mask scores; a training
 image with boxes becomes a *box view* (named by its path without extension, e.g. ``after/v00``)
-where only ``partition`` and ``evidence3d`` are scored, at that image's camera from
+where only ``render_diff``, ``evidence3d`` and ``partition`` are scored, at that image's camera from
 ``poses/cameras.json`` (the other methods need an eval photo pair and are skipped, logged).
 Box scores (:func:`gdiff.metrics.gt_box_scores`): a box is found when at least
 ``object_found_fraction`` of its core (the centred ``box_core`` of its width and height) is
@@ -62,7 +62,8 @@ import numpy as np
 import pandas as pd
 
 from .baselines import (MethodNotApplicable, Prediction, as_prediction, evidence3d_method,
-                        idcompare_method, partition_method, pixel_diff_method)
+                        idcompare_method, partition_method, pixel_diff_method,
+                        render_diff_method)
 from .cameras import Camera, image_root, load_cameras
 from .errors import ConfigError, SceneError
 from .io import (imread_upright, read_image, read_json, read_mask, write_csv, write_image,
@@ -73,9 +74,9 @@ from .metrics import aggregate, gt_box_scores, object_regions, object_scores, sc
 
 log = logging.getLogger("gdiff.evaluate")
 
-METHODS = ("pixel_diff", "idcompare", "evidence3d", "partition")
+METHODS = ("pixel_diff", "idcompare", "render_diff", "evidence3d", "partition")
 # methods that need only the eval camera (and the fitted model), not an eval photo pair
-CAMERA_METHODS = ("evidence3d", "partition")
+CAMERA_METHODS = ("render_diff", "evidence3d", "partition")
 METRIC_COLUMNS = ["scene", "view", "method", "P", "R", "F1", "IoU", "TP", "FP", "FN",
                   "box_P", "box_R", "box_F1", "box_AP", "box_TP", "box_FP", "box_FN", "seconds",
                   "obj_N", "obj_found", "obj_R", "gtbox_N", "gtbox_found", "gtbox_R", "far_FP",
@@ -87,7 +88,8 @@ class EvalOptions:
     """Options of the ``evaluate`` config section."""
 
     methods: list[str] = field(default_factory=lambda: list(METHODS))
-    """Methods to score side by side: any of pixel_diff, idcompare, evidence3d, partition."""
+    """Methods to score side by side: any of pixel_diff, idcompare, render_diff, evidence3d,
+    partition."""
     box_iou: float = 0.5
     """IoU a predicted box needs with a ground-truth box to count as a detection."""
     box_min_area: float = 0.0005
@@ -388,6 +390,12 @@ def build_methods(options: EvalOptions, pmodel: Any = None, render: Callable | N
             out[name] = idcompare_method(detect=detect, render=render,
                                          depth=depth if options.idcompare_depth else None,
                                          **idcompare_kwargs)
+        elif name == "render_diff":
+            if render is None:
+                log.info("render_diff skipped: it needs the fitted model to render")
+                continue
+            out[name] = render_diff_method(render, options.pixel_blur_sigma,
+                                           options.pixel_min_threshold)
         elif name == "evidence3d":
             if evidence is None or depth is None:
                 log.info("evidence3d skipped: it needs the compare stage's evidence3d.npz and "

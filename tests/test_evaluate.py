@@ -317,3 +317,47 @@ def test_render_quality_psnr_at_eval_views(tmp_path):
     assert (q[q["time"] == 1]["psnr"] > 90).all()
     t0 = q[q["time"] == 0]["psnr"]
     assert t0.between(19.0, 20.01).all()  # +0.1 everywhere (a little less where clipped)
+
+
+def test_render_diff_scores_the_fitted_model_at_any_camera(tmp_path):
+    """render_diff compares the model's own renders at t=0 and t=1 at the eval camera: scored at
+    eval views and, as a camera method, at training images with boxes; without a renderer the
+    method is left out."""
+    import json
+
+    root, boxes = _scene(tmp_path)
+    from gdiff.cameras import load_cameras
+
+    cams = load_cameras(root / "cameras.json")
+    write_image(root / "after" / "v00.png", _texture(7))
+    write_image(root / "before" / "v00.png", _texture(7))
+    cams.append(Camera(W, H, 50.0, 50.0, W / 2, H / 2, look_at([9, -3.0, 1.0], [0, 0, 0]),
+                       image="after/v00.png", set="after", time=1))
+    save_cameras(root / "cameras.json", cams)
+    (root / "eval" / "boxes.json").write_text(json.dumps({"after/v00.png": [[20, 8, 40, 24]]}))
+    names = sorted(boxes)
+    rendered = []
+
+    def render(camera, t):
+        """The scene's true state at time t, as a perfect fit would render it."""
+        rendered.append((round(camera.center[0]), t, camera.width))
+        i = round(camera.center[0])
+        if i == 9:  # the training image: an object added in its box at t=1
+            img = _texture(7)
+            if t == 1.0:
+                img = img.copy()
+                img[8:24, 20:40] = (0.1, 0.2, 0.95)
+            return img
+        return _pair(i, boxes[names[i]])[int(t)]
+
+    opts = E.EvalOptions(methods=["pixel_diff", "render_diff"], overlays=False)
+    assert list(E.build_methods(opts)) == ["pixel_diff"]  # no model to render: left out
+    methods = E.build_methods(opts, render=render)
+    df = E.evaluate_scene(root, root / "cameras.json", tmp_path / "out", "s", methods, opts)
+    rd = df[df["method"] == "render_diff"].set_index("view")
+    assert sorted(rd.index) == ["000", "001", "002", "after/v00"]
+    assert (rd.loc[["000", "001", "002"], "F1"] > 0.85).all()
+    assert rd.loc["after/v00", "gtbox_found"] == 1 and rd.loc["after/v00", "far_frac"] < 0.01
+    assert {(x, t) for x, t, _ in rendered} >= {(0, 0.0), (0, 1.0), (9, 0.0), (9, 1.0)}
+    assert all(w == W for _, _, w in rendered)  # at the ground truth's size
+    assert list(df[df["view"] == "after/v00"]["method"]) == ["render_diff"]

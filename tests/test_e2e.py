@@ -83,8 +83,9 @@ def test_tiny_end_to_end_with_sigkill_and_local_cluster(tmp_path):
     log = pd.read_csv(res / "fit/train_log.csv")
     assert log["iteration"].max() == 360
     metrics = pd.read_csv(res / "eval/metrics.csv")
-    assert set(metrics["method"]) == {"pixel_diff", "idcompare", "evidence3d", "partition"}
-    assert len(metrics) == 3 * 4  # 3 eval views x 4 methods
+    assert set(metrics["method"]) == {"pixel_diff", "idcompare", "render_diff", "evidence3d",
+                                      "partition"}
+    assert len(metrics) == 3 * 5  # 3 eval views x 5 methods
     summary = pd.read_csv(work / "results/summary.csv")
     assert {"scene", "method"} <= set(summary.columns)
     timings = pd.read_csv(work / "results/timings.csv")

@@ -404,7 +404,8 @@ def track_sequence(frames: list[TrackFrame], options: TrackOptions | None = None
                 next_id += 1
             lut[s] = assign[s]
         ids = lut[labels]
-        out.append(ids)
+        # the ID maps of the whole chain stay in memory until the end: the narrowest type
+        out.append(ids.astype(np.uint16) if next_id <= np.iinfo(np.uint16).max else ids)
         for s, t in assign.items():
             last_seen[t] = k
             seen_at.setdefault(t, []).append(k)
@@ -449,10 +450,12 @@ def track_sequence(frames: list[TrackFrame], options: TrackOptions | None = None
     # surviving tracks renumbered 1..K in their order (the tracker hands out a new ID to every
     # unmatched segment, so on long sequences raw IDs run far beyond the tracks that remain)
     keep = sorted(t for t in seen_at if t not in removed)
-    number = np.zeros(len(lut), dtype=np.int32)
-    number[keep] = np.arange(1, len(keep) + 1, dtype=np.int32)
+    dtype = np.uint16 if len(keep) <= np.iinfo(np.uint16).max else np.int32
+    number = np.zeros(len(lut), dtype=dtype)
+    number[keep] = np.arange(1, len(keep) + 1, dtype=dtype)
     lut = number[lut]
-    out = [lut[m] for m in out]
+    for k, m in enumerate(out):  # in place: one chain of ID maps in memory, not two
+        out[k] = lut[m]
     rows = [dict(id=int(number[t]), first=seen_at[t][0], last=seen_at[t][-1],
                  n_frames=len(seen_at[t]), mean_area=areas[t] / len(seen_at[t])) for t in keep]
     log.info("tracked %d frames: %d tracks (%d removed by voting, %d merged by 3D position, "

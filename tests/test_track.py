@@ -256,3 +256,16 @@ def test_merge_positions_does_not_depend_on_the_block_size(monkeypatch):
     assert track.merge_positions(pos, frames_of, 0.5) == ref
     assert ref[3] == 2 and ref[9] == 8  # twins seen at the same times merge
     assert 6 not in ref and 15 not in ref  # twins seen at other times (5: t0 and t1, 6: t0) do not
+
+
+def test_id_maps_are_held_in_the_narrowest_type(tracked):
+    """Every frame's ID map is held until the chain ends: uint16 while the IDs fit, int32
+    beyond (more than 65535 raw IDs on one chain keeps every ID)."""
+    _, _, _, ids, tracks = tracked
+    assert all(m.dtype == np.uint16 for m in ids.values())
+    assert ids[("p1", "t0", 0)].max() <= len(tracks)
+    n = 70000  # one segment per pixel, more segments than a uint16 holds
+    labels = np.arange(1, n + 1, dtype=np.int32).reshape(280, 250)
+    res = track_sequence([TrackFrame(labels=labels)], TrackOptions(vote_window=0))
+    assert res.ids[0].dtype == np.int32 and len(res.tracks) == n
+    assert (res.ids[0] == labels).all()  # numbered 1..K in order of appearance

@@ -283,6 +283,17 @@ def propagate(ids_src: np.ndarray, src: TrackFrame, dst: TrackFrame, o: TrackOpt
     return flow_ids(ids_src, src, dst, o.flow_fb_tol)
 
 
+def id_dtype(max_id: int) -> type:
+    """The narrowest type for ID maps with IDs up to ``max_id``: uint16 (as ID maps are
+    written), else int32. A chain's ID maps are all held until it ends."""
+    return np.uint16 if max_id <= np.iinfo(np.uint16).max else np.int32
+
+
+def narrow_ids(a: np.ndarray) -> np.ndarray:
+    """``a`` (non-negative integer labels or IDs) in :func:`id_dtype` of its largest value."""
+    return a.astype(id_dtype(int(a.max(initial=0))), copy=False)
+
+
 def unique_ids(a: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """``np.unique(a.ravel(), return_inverse=True)`` for an ID map (non-negative integers): the
     sorted IDs present and each pixel's index into them, by counting instead of sorting."""
@@ -397,15 +408,16 @@ def track_sequence(frames: list[TrackFrame], options: TrackOptions | None = None
             for r, c in zip(rows, cols):
                 if M[r, c] >= o.iou_gate:
                     assign[seg_ids[c]] = trk[r]
-        lut = np.zeros(int(labels.max(initial=0)) + 1, np.int32)
         for s in seg_ids:
             if s not in assign:
                 assign[s] = next_id
                 next_id += 1
+        # the ID maps of the whole chain stay in memory until the end: the narrowest type
+        lut = np.zeros(int(labels.max(initial=0)) + 1, id_dtype(next_id - 1))
+        for s in seg_ids:
             lut[s] = assign[s]
         ids = lut[labels]
-        # the ID maps of the whole chain stay in memory until the end: the narrowest type
-        out.append(ids.astype(np.uint16) if next_id <= np.iinfo(np.uint16).max else ids)
+        out.append(ids)
         for s, t in assign.items():
             last_seen[t] = k
             seen_at.setdefault(t, []).append(k)
@@ -450,9 +462,8 @@ def track_sequence(frames: list[TrackFrame], options: TrackOptions | None = None
     # surviving tracks renumbered 1..K in their order (the tracker hands out a new ID to every
     # unmatched segment, so on long sequences raw IDs run far beyond the tracks that remain)
     keep = sorted(t for t in seen_at if t not in removed)
-    dtype = np.uint16 if len(keep) <= np.iinfo(np.uint16).max else np.int32
-    number = np.zeros(len(lut), dtype=dtype)
-    number[keep] = np.arange(1, len(keep) + 1, dtype=dtype)
+    number = np.zeros(len(lut), dtype=id_dtype(len(keep)))
+    number[keep] = np.arange(1, len(keep) + 1)
     lut = number[lut]
     for k, m in enumerate(out):  # in place: one chain of ID maps in memory, not two
         out[k] = lut[m]

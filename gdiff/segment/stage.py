@@ -24,7 +24,8 @@ from ..frames import TIMES, Key, key_frames, read_frame, read_sequence, render_f
 from ..io import MAX_ID, write_csv, write_ids, write_image, write_json
 from ..log import progress
 from ..parallel import ordered_map
-from ..track import TrackFrame, TrackOptions, chain_order, labels_from_instances, track_sequence
+from ..track import (TrackFrame, TrackOptions, chain_order, labels_from_instances, narrow_ids,
+                     track_sequence)
 from .base import Segmenter, SegmentOptions, make_segmenter
 
 log = logging.getLogger("gdiff.segment")
@@ -60,7 +61,7 @@ class _Chain(Sequence):
         f = _frame(self.get, key)
         cam = f.get("camera")
         if k not in self.labels:
-            self.labels[k] = _narrow(_segment_frame(self.segmenter, f))
+            self.labels[k] = narrow_ids(_segment_frame(self.segmenter, f))
         tf = TrackFrame(labels=self.labels[k], rgb=f["rgb"], depth=f.get("depth"), camera=cam,
                         pose_key=(key[0], key[2]), name=key, time=TIMES.index(key[1]),
                         key=(key[0], key[2]) in self.key_poses)
@@ -68,12 +69,6 @@ class _Chain(Sequence):
         while len(self.cache) > self.keep:
             self.cache.popitem(last=False)
         return tf
-
-
-def _narrow(labels: np.ndarray) -> np.ndarray:
-    """Labels as uint16 when they fit (the labels of every frame are held until tracked)."""
-    return labels.astype(np.uint16) if labels.max(initial=0) <= np.iinfo(np.uint16).max \
-        else labels
 
 
 def _frame(get, key: Key) -> dict:
@@ -148,7 +143,7 @@ def track_paths(frames, segmenter: Segmenter, track_options: TrackOptions | None
         # the workers read each frame for its labels only; the tracker reads it again when it
         # gets there (holding every frame's images until then would not fit on long paths)
         segmented = ordered_map(_SegmentAhead(get, segmenter), order, workers, chunksize=4)
-        labels = {k: _narrow(m) for k, m in
+        labels = {k: narrow_ids(m) for k, m in
                   enumerate(progress(segmented, desc="segment", total=len(order)))}
     chain = _Chain(order, get, segmenter, keep=o.max_missed + 3,
                    key_poses=key_poses, labels=labels)

@@ -410,19 +410,34 @@ def build_methods(options: EvalOptions, pmodel: Any = None, render: Callable | N
     return out
 
 
-def model_renderer(model: Any) -> Callable[[Camera, float], np.ndarray]:
-    """``render(camera, t) -> rgb float32 [H, W, 3]`` from a fitted 4D model
-    (``gdiff.splat.render.render``, imported on first use)."""
+def model_renderer(model: Any, keep_mb: float = 256.0) -> Callable[[Camera, float], np.ndarray]:
+    """``render(camera, t) -> rgb float32 [H, W, 3]`` (read-only) from a fitted 4D model
+    (``gdiff.splat.render.render``, imported on first use).
+
+    Renders are kept, up to ``keep_mb`` MB, and returned again for the same camera and time:
+    the evaluate rule asks for each eval view twice (``render_diff``, then the fit's quality
+    in :func:`render_quality`)."""
+    kept: dict[tuple, np.ndarray] = {}
+    budget = [keep_mb * 1e6]
 
     def render(camera: Camera, t: float) -> np.ndarray:
         import torch
 
         from .splat.render import render as splat_render  # lazy: stage module
 
+        key = (camera.width, camera.height, camera.fx, camera.fy, camera.cx, camera.cy,
+               np.asarray(camera.c2w, np.float64).tobytes(), float(t))
+        if key in kept:
+            return kept[key]
         with torch.no_grad():
             rgb = splat_render(model, [camera], t, render_mode="RGB")["rgb"]
         rgb = np.asarray(rgb.detach().cpu().numpy(), dtype=np.float32)
-        return np.clip(rgb[0] if rgb.ndim == 4 else rgb, 0.0, 1.0)
+        rgb = np.clip(rgb[0] if rgb.ndim == 4 else rgb, 0.0, 1.0)
+        rgb.setflags(write=False)
+        if rgb.nbytes <= budget[0]:
+            kept[key] = rgb
+            budget[0] -= rgb.nbytes
+        return rgb
 
     return render
 

@@ -361,3 +361,37 @@ def test_render_diff_scores_the_fitted_model_at_any_camera(tmp_path):
     assert {(x, t) for x, t, _ in rendered} >= {(0, 0.0), (0, 1.0), (9, 0.0), (9, 1.0)}
     assert all(w == W for _, _, w in rendered)  # at the ground truth's size
     assert list(df[df["view"] == "after/v00"]["method"]) == ["render_diff"]
+
+
+def test_model_renderer_renders_each_camera_and_time_once(monkeypatch):
+    """The evaluate rule asks for each eval view twice (render_diff, then the fit's quality):
+    the second ask returns the kept render, read-only; another time or camera renders again,
+    and nothing is kept beyond the budget."""
+    import torch
+
+    import gdiff.splat.render as R
+    from gdiff.splat.model import GaussianModel4D
+
+    model = GaussianModel4D(1, sh_degree=0, deform=None)
+    with torch.no_grad():
+        model.splats["means"].zero_()
+        model.splats["scales"].fill_(math.log(0.1))
+    calls = []
+    real = R.render
+
+    def counting(*a, **k):
+        calls.append(a[2])
+        return real(*a, **k)
+
+    monkeypatch.setattr(R, "render", counting)
+    cam = Camera(40, 30, 40.0, 40.0, 20, 15, look_at([0, -2.0, 0], [0, 0, 0]))
+    render = E.model_renderer(model)
+    a = render(cam, 0.0)
+    assert render(cam, 0.0) is a and not a.flags.writeable
+    render(cam, 1.0)
+    render(Camera(40, 30, 40.0, 40.0, 20, 15, look_at([0, -2.5, 0], [0, 0, 0])), 0.0)
+    assert calls == [0.0, 1.0, 0.0]
+    tight = E.model_renderer(model, keep_mb=0.0)
+    tight(cam, 0.0)
+    tight(cam, 0.0)
+    assert calls == [0.0, 1.0, 0.0, 0.0, 0.0]

@@ -13,6 +13,7 @@ import torch
 from ..cameras import stack_for_render
 from ..splat.rasterize import (ALPHA_MAX, ALPHA_MIN, SIGMA_MAX, T_MIN, _sigma,
                                covariance_3d, opacity_footprint, project_gaussians, rasterize)
+from ..splat import csrc
 from ..splat.reflection import shade
 from .head import CHANGED, UNCHANGED, ChangeHead
 
@@ -133,7 +134,7 @@ def _row_bands(lo_y, hi_y, nw, height: int, budget: int) -> list[tuple[int, int]
 
 @torch.no_grad()
 def blend_weights(g, camera, tolerance: float = 0.0, dtype: torch.dtype = torch.float32,
-                  band_pairs: int = BLEND_BAND_PAIRS) -> BlendWeights:
+                  band_pairs: int = BLEND_BAND_PAIRS, backend: str = "auto") -> BlendWeights:
     """The blending weights of Gaussians ``g`` (activated, e.g. ``model.at_time(t)``) at
     ``camera`` (:class:`gdiff.cameras.Camera`, OpenCV axes, pixel centres at +0.5).
 
@@ -150,8 +151,11 @@ def blend_weights(g, camera, tolerance: float = 0.0, dtype: torch.dtype = torch.
             pairs of a pixel are faint ones behind its opaque surface, so a small tolerance
             (1e-3) drops many of them.
         dtype: dtype of the stored weights (float16 halves them; relative error 2^-11).
-        band_pairs: candidate pairs processed at once (rows of the image in bands): bounds the
-            transient memory, the result does not depend on it.
+        band_pairs: candidate pairs processed at once (rows of the image in bands) by the torch
+            implementation: bounds its transient memory, the result does not depend on it.
+        backend: ``auto`` (the compiled rasterizer's ``rasterize_weights`` for CPU tensors when
+            it is built, else torch), ``cpp`` or ``torch`` (any device; vectorised over
+            candidate pairs). Both give the same pairs; weights agree to float rounding.
     Memory: 6 (float16) or 8 (float32) bytes per kept (pixel, Gaussian) pair plus 4 per pixel.
     """
     dev = g.means.device
@@ -159,6 +163,18 @@ def blend_weights(g, camera, tolerance: float = 0.0, dtype: torch.dtype = torch.
     viewmats, Ks = stack_for_render([camera], device=dev, dtype=g.means.dtype)
     proj = project_gaussians(g.means, covariance_3d(g.quats, g.scales), viewmats, Ks, W, H)
     ext, drawn = opacity_footprint(proj["extents"], proj["visible"], g.opacities)
+    if backend not in ("auto", "cpp", "torch"):
+        raise ValueError(f"blend_weights backend must be auto, cpp or torch, not {backend!r}")
+    mod = None
+    if backend == "cpp" or (backend == "auto" and dev.type == "cpu"):
+        mod = csrc.load(required=backend == "cpp")
+    if mod is not None:  # the compiled rasterizer's own traversal (same tests and order)
+        counts, gid, wt, alpha = mod.rasterize_weights(
+            proj["means2d"].float().contiguous(), proj["conics"].float().contiguous(),
+            g.opacities.float()[None].contiguous(), ext.float().contiguous(),
+            drawn.contiguous(), csrc.depth_order(proj["depths"], drawn).contiguous(), W, H,
+            csrc.TILE_SIZE, float(tolerance))
+        return BlendWeights(counts, gid, wt.to(dtype), alpha, W, H)
     vis = drawn[0].nonzero(as_tuple=True)[0]
     gids = vis[torch.argsort(proj["depths"][0, vis], stable=True)]  # depth order
     m2d, con, opa = proj["means2d"][0, gids], proj["conics"][0, gids], g.opacities[gids]

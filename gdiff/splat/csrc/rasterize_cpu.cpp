@@ -349,6 +349,162 @@ std::vector<at::Tensor> backward_impl(
   return {g_m, g_q, g_c, g_o, g_abs};
 }
 
+
+// The compositing weights w = alpha_i T_i of every (pixel, Gaussian) pair the forward pass
+// blends (same tests, same order, same early stop), for one camera: the sparse [H*W, N]
+// matrix that maps per-Gaussian features to the image when the geometry is fixed. Returned
+// row-compressed: counts [H*W] int32 pairs per pixel (row-major), gid [P] int32 and weight
+// [P] pixel by pixel (front to back within a pixel), alpha [H*W] = 1 - T_final. With
+// tolerance > 0 each pixel drops its smallest weights (ties: the front one first) as long as
+// their sum stays <= tolerance; alpha still counts them.
+template <typename scalar_t>
+std::vector<at::Tensor> weights_impl(const at::Tensor& means2d, const at::Tensor& conics,
+                                     const at::Tensor& opacities, const at::Tensor& extents,
+                                     const at::Tensor& visible, const at::Tensor& order,
+                                     int64_t W, int64_t H, int64_t tile, double tolerance) {
+  const int64_t N = means2d.size(1);
+  Bins bins = bin_gaussians<scalar_t>(means2d, extents, visible, order, W, H, tile);
+  const int64_t tx_n = (W + tile - 1) / tile, ty_n = (H + tile - 1) / tile, nt = tx_n * ty_n;
+  at::Tensor counts = at::zeros({H * W}, at::kInt);
+  at::Tensor alpha = at::zeros({H * W}, at::kFloat);
+  const scalar_t* M = means2d.data_ptr<scalar_t>();
+  const scalar_t* Q = conics.data_ptr<scalar_t>();
+  const scalar_t* O = opacities.data_ptr<scalar_t>();
+  const scalar_t* E = extents.data_ptr<scalar_t>();
+  const int64_t* off = bins.offsets.data_ptr<int64_t>();
+  const int32_t* ids = bins.ids.data_ptr<int32_t>();
+  int32_t* cnt_p = counts.data_ptr<int32_t>();
+  float* alpha_p = alpha.data_ptr<float>();
+  const int64_t P = tile * tile;
+  // per tile: its pairs grouped by tile pixel (front to back within a pixel)
+  std::vector<std::vector<int32_t>> tile_gid(nt);
+  std::vector<std::vector<float>> tile_w(nt);
+
+  run_tasks(nt, num_threads(), [&](int64_t t, int) {
+    const int64_t px0 = (t % tx_n) * tile, py0 = (t / tx_n) * tile;
+    const int64_t tw = std::min(tile, W - px0), th = std::min(tile, H - py0);
+    std::vector<scalar_t> T(P, 1);
+    std::vector<uint8_t> done(P, 0);
+    std::vector<int32_t> pq, pg;  // pairs in traversal order: tile pixel, Gaussian
+    std::vector<float> pw;
+    int64_t n_done = 0;
+    const int64_t n_pix = tw * th;
+    for (int64_t k = off[t]; k < off[t + 1] && n_done < n_pix; ++k) {
+      const int64_t g = ids[k];
+      const scalar_t mx = M[g * 2], my = M[g * 2 + 1];
+      int64_t x0, x1, y0, y1;
+      box_range<scalar_t>(mx, E[g * 2], x0, x1);
+      box_range<scalar_t>(my, E[g * 2 + 1], y0, y1);
+      x0 = std::max(x0, px0); x1 = std::min(x1, px0 + tw - 1);
+      y0 = std::max(y0, py0); y1 = std::min(y1, py0 + th - 1);
+      if (x0 > x1 || y0 > y1) continue;
+      const scalar_t a = Q[g * 3], b = Q[g * 3 + 1], cc = Q[g * 3 + 2], op = O[g];
+      const scalar_t s_max = std::min((scalar_t)kSigmaMax, sigma_reach(op));
+      if (!(s_max >= 0)) continue;
+      for (int64_t j = y0; j <= y1; ++j) {
+        const scalar_t dy = my - ((scalar_t)j + (scalar_t)0.5);
+        for (int64_t i = x0; i <= x1; ++i) {
+          const int64_t q = (j - py0) * tile + (i - px0);
+          if (done[q]) continue;
+          const scalar_t dx = mx - ((scalar_t)i + (scalar_t)0.5);
+          const scalar_t sigma = (scalar_t)0.5 * (a * dx * dx + cc * dy * dy) + b * dx * dy;
+          if (sigma > s_max || sigma < 0) continue;
+          const scalar_t al = std::min((scalar_t)kAlphaMax, op * std::exp(-sigma));
+          if (al < (scalar_t)kAlphaMin) continue;
+          const scalar_t nT = T[q] * (1 - al);
+          if (nT <= (scalar_t)kTMin) {
+            done[q] = 1;
+            ++n_done;
+            continue;
+          }
+          pq.push_back((int32_t)q);
+          pg.push_back((int32_t)g);
+          pw.push_back((float)(al * T[q]));
+          T[q] = nT;
+        }
+      }
+    }
+    // stable counting sort of the pairs by tile pixel
+    std::vector<int64_t> start(P + 1, 0);
+    for (int32_t q : pq) ++start[q + 1];
+    for (int64_t q = 0; q < P; ++q) start[q + 1] += start[q];
+    std::vector<int32_t>& og = tile_gid[t];
+    std::vector<float>& ow = tile_w[t];
+    og.resize(pq.size());
+    ow.resize(pq.size());
+    std::vector<int64_t> fill(start.begin(), start.end() - 1);
+    for (size_t p = 0; p < pq.size(); ++p) {
+      const int64_t d = fill[pq[p]]++;
+      og[d] = pg[p];
+      ow[d] = pw[p];
+    }
+    std::vector<int64_t> kept(P, 0);
+    if (tolerance > 0) {  // drop each pixel's faintest pairs, compacting the runs in place
+      std::vector<int32_t> idx;
+      std::vector<uint8_t> drop;
+      int64_t dst = 0;
+      for (int64_t q = 0; q < P; ++q) {
+        const int64_t b = start[q], n = start[q + 1] - b;
+        idx.resize(n);
+        drop.assign(n, 0);
+        for (int64_t u = 0; u < n; ++u) idx[u] = (int32_t)u;
+        std::stable_sort(idx.begin(), idx.end(),
+                         [&](int32_t u, int32_t v) { return ow[b + u] < ow[b + v]; });
+        double sum = 0;
+        for (int64_t u = 0; u < n; ++u) {
+          sum += (double)ow[b + idx[u]];
+          if (sum > tolerance) break;
+          drop[idx[u]] = 1;
+        }
+        for (int64_t u = 0; u < n; ++u) {
+          if (drop[u]) continue;
+          og[dst] = og[b + u];
+          ow[dst] = ow[b + u];
+          ++dst;
+          ++kept[q];
+        }
+      }
+      og.resize(dst);
+      ow.resize(dst);
+    } else {
+      for (int64_t q = 0; q < P; ++q) kept[q] = start[q + 1] - start[q];
+    }
+    for (int64_t j = 0; j < th; ++j) {
+      for (int64_t i = 0; i < tw; ++i) {
+        const int64_t q = j * tile + i;
+        const int64_t pix = (py0 + j) * W + px0 + i;
+        cnt_p[pix] = (int32_t)kept[q];
+        alpha_p[pix] = (float)(1 - T[q]);
+      }
+    }
+  });
+  // pixel-major offsets, then every tile copies its runs into place
+  std::vector<int64_t> pix_off(H * W + 1, 0);
+  for (int64_t p = 0; p < H * W; ++p) pix_off[p + 1] = pix_off[p] + cnt_p[p];
+  at::Tensor gid = at::empty({pix_off[H * W]}, at::kInt);
+  at::Tensor weight = at::empty({pix_off[H * W]}, at::kFloat);
+  int32_t* gid_p = gid.data_ptr<int32_t>();
+  float* w_p = weight.data_ptr<float>();
+  run_tasks(nt, num_threads(), [&](int64_t t, int) {
+    const int64_t px0 = (t % tx_n) * tile, py0 = (t / tx_n) * tile;
+    const int64_t tw = std::min(tile, W - px0), th = std::min(tile, H - py0);
+    int64_t src = 0;
+    for (int64_t j = 0; j < th; ++j) {
+      for (int64_t i = 0; i < tw; ++i) {
+        const int64_t pix = (py0 + j) * W + px0 + i;
+        const int64_t n = cnt_p[pix];
+        std::copy(tile_gid[t].begin() + src, tile_gid[t].begin() + src + n, gid_p + pix_off[pix]);
+        std::copy(tile_w[t].begin() + src, tile_w[t].begin() + src + n, w_p + pix_off[pix]);
+        src += n;
+      }
+    }
+    std::vector<int32_t>().swap(tile_gid[t]);
+    std::vector<float>().swap(tile_w[t]);
+  });
+  (void)N;
+  return {counts, gid, weight, alpha};
+}
+
 void check(const at::Tensor& t, const char* name, int64_t dim) {
   TORCH_CHECK(t.device().is_cpu(), name, " must be a CPU tensor");
   TORCH_CHECK(t.is_contiguous(), name, " must be contiguous");
@@ -390,9 +546,28 @@ std::vector<at::Tensor> rasterize_backward(
   return res;
 }
 
+std::vector<at::Tensor> rasterize_weights(at::Tensor means2d, at::Tensor conics,
+                                          at::Tensor opacities, at::Tensor extents,
+                                          at::Tensor visible, at::Tensor order, int64_t width,
+                                          int64_t height, int64_t tile, double tolerance) {
+  check(means2d, "means2d", 3); check(conics, "conics", 3); check(opacities, "opacities", 2);
+  check(extents, "extents", 3); check(visible, "visible", 2); check(order, "order", 2);
+  TORCH_CHECK(means2d.size(0) == 1, "rasterize_weights takes one camera");
+  TORCH_CHECK(visible.scalar_type() == at::kBool && order.scalar_type() == at::kLong,
+              "visible must be bool and order int64");
+  std::vector<at::Tensor> res;
+  AT_DISPATCH_FLOATING_TYPES(means2d.scalar_type(), "gdiff_rasterize_weights", [&] {
+    res = weights_impl<scalar_t>(means2d, conics, opacities, extents, visible, order, width,
+                                 height, tile, tolerance);
+  });
+  return res;
+}
+
 TORCH_LIBRARY(gdiff_splat, m) {
   // (out, alpha, T_final, last, tile_offsets, tile_ids)
   m.def("rasterize_forward", &rasterize_forward);
   // (grad_means2d, grad_conics, grad_colors, grad_opacities, absgrad_means2d)
   m.def("rasterize_backward", &rasterize_backward);
+  // (counts [H*W], gid [P], weight [P], alpha [H*W]) of one camera
+  m.def("rasterize_weights", &rasterize_weights);
 }

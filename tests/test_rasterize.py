@@ -355,6 +355,45 @@ def test_cpp_matches_torch_on_larger_scene(D, mode):
         torch.testing.assert_close(gc / scale, gt / scale, atol=1e-4, rtol=0, msg=name)
 
 
+@pytest.mark.skipif(not _cpp_available(), reason="C++ kernel could not be built")
+@pytest.mark.parametrize("D", [3, 8])
+def test_cpp_forward_composites_as_the_weights_traversal(D):
+    """The float forward kernel (8 pixels at a time on CPUs with AVX2) and the scalar loop of
+    rasterize_weights blend the same pairs: same last Gaussian per pixel, features equal to
+    the weighted colours; with glibc (whose expf the vector exp reproduces) alpha is bitwise
+    equal."""
+    import platform
+
+    from gdiff.splat import csrc
+
+    mod = csrc.load(required=True)
+    sc = random_scene(3000, seed=11, n_cams=1, width=75, height=41, D=D,
+                      scale_range=(0.01, 0.3), spread=1.2)
+    W, H = sc["width"], sc["height"]
+    proj = R.project_gaussians(sc["means"], R.covariance_3d(sc["quats"], sc["scales"]),
+                               sc["viewmats"], sc["Ks"], W, H)
+    m2d, con, ext, vis = proj["means2d"], proj["conics"], proj["extents"], proj["visible"]
+    op = sc["opacities"][None].contiguous()
+    order = csrc.depth_order(proj["depths"], vis)
+    out, alpha, _, last, _, ids = mod.rasterize_forward(
+        m2d, con, sc["colors"][None].contiguous(), op, ext, vis, order, W, H, csrc.TILE_SIZE)
+    counts, gid, weight, w_alpha = mod.rasterize_weights(m2d, con, op, ext, vis, order, W, H,
+                                                         csrc.TILE_SIZE, 0.0)
+    assert (w_alpha > 0.999).sum() > W * H / 4 and len(gid) > 20 * W * H  # many layers, stops
+    pix = torch.repeat_interleave(torch.arange(W * H), counts.long())
+    feats = torch.zeros(W * H, D).index_add_(0, pix, weight[:, None] * sc["colors"][gid.long()])
+    torch.testing.assert_close(out.reshape(-1, D), feats, atol=1e-5, rtol=0)
+    last = last.reshape(-1).long()
+    blended = counts > 0
+    assert torch.equal(last >= 0, blended)
+    ends = torch.cumsum(counts.long(), 0) - 1
+    assert torch.equal(ids[last[blended]], gid[ends[blended]])
+    if platform.libc_ver()[0] == "glibc":
+        assert torch.equal(alpha.reshape(-1), w_alpha)
+    else:
+        torch.testing.assert_close(alpha.reshape(-1), w_alpha, atol=1e-6, rtol=0)
+
+
 def test_options_from_config():
     from gdiff.errors import ConfigError
     from gdiff.options import from_config

@@ -14,6 +14,13 @@
 // are the same on every run (see run_tasks).
 //
 // Compiled with -ffp-contract=off so that sigma rounds exactly as in the torch path.
+//
+// With AVX2 and FMA (the build uses -march=native) the float forward and backward passes run
+// 8 pixels of a tile row at once (forward_tile_f32, backward_tile_f32); the scalar loops stay
+// for double and for other CPUs. Per pixel they compute the same values in the same order (the
+// exp is bitwise that of glibc's expf, see exp8), so the forward outputs are bitwise those of
+// the scalar loop; the backward sums each Gaussian's gradient over its pixels in 8 per-lane
+// partial sums, which changes only the rounding of those sums.
 
 // Only the ATen headers in use are included (not <torch/extension.h>): it halves compile time.
 #include <ATen/Dispatch.h>
@@ -29,8 +36,17 @@
 #include <atomic>
 #include <cmath>
 #include <cstdint>
+#include <memory>
 #include <thread>
+#include <type_traits>
 #include <vector>
+
+#if defined(__AVX2__) && defined(__FMA__)
+#include <immintrin.h>
+#define GDIFF_RASTER_SIMD 1
+#else
+#define GDIFF_RASTER_SIMD 0
+#endif
 
 namespace {
 
@@ -87,6 +103,382 @@ template <typename scalar_t>
 inline scalar_t sigma_reach(scalar_t op) {
   return (scalar_t)(std::log(std::max((double)op, 1e-30) / kAlphaMin) + 1e-3);
 }
+
+#if GDIFF_RASTER_SIMD
+// ---------------------------------------------------------------- 8-lane float kernels (AVX2)
+//
+// Inside a tile the per-pixel state is held as structure of arrays: one float (or int32) per
+// tile pixel, row-major with row stride `tile`, each array padded by 8 so that a chunk of 8
+// pixels starting anywhere in the tile can be loaded and stored whole. A Gaussian's clipped
+// box is covered, row by row, by chunks starting at its first column x0 (x0, x0 + 8, ...);
+// lanes past x1, lanes of pixels already finished and lanes failing the tests keep their old
+// state through blends (lanes past the end of a row belong to the next row or the padding and
+// are written back unchanged). All arithmetic is the scalar loop's, operation by operation
+// (separate multiplies and adds, no FMA), so each pixel's values round the same.
+
+// bits of 2^(i/32) minus i << 47: adding k << 47 for k = 32 e + i gives 2^(e + i/32)
+alignas(32) const uint64_t kExp2Table[32] = {
+    0x3ff0000000000000, 0x3fefd9b0d3158574, 0x3fefb5586cf9890f, 0x3fef9301d0125b51,
+    0x3fef72b83c7d517b, 0x3fef54873168b9aa, 0x3fef387a6e756238, 0x3fef1e9df51fdee1,
+    0x3fef06fe0a31b715, 0x3feef1a7373aa9cb, 0x3feedea64c123422, 0x3feece086061892d,
+    0x3feebfdad5362a27, 0x3feeb42b569d4f82, 0x3feeab07dd485429, 0x3feea47eb03a5585,
+    0x3feea09e667f3bcd, 0x3fee9f75e8ec5f74, 0x3feea11473eb0187, 0x3feea589994cce13,
+    0x3feeace5422aa0db, 0x3feeb737b0cdc5e5, 0x3feec49182a3f090, 0x3feed503b23e255d,
+    0x3feee89f995ad3ad, 0x3feeff76f2fb5e47, 0x3fef199bdd85529c, 0x3fef3720dcef9069,
+    0x3fef5818dcfba487, 0x3fef7c97337b9b5f, 0x3fefa4afa2a490da, 0x3fefd0765b6e4540};
+
+// exp of 4 doubles (for arguments converted from float): x 32/ln2 = k + r with integer k and
+// |r| <= 1/2, exp(x) = 2^(k/32) 2^(r/32) with a cubic for 2^(r/32). This is the algorithm and
+// the constants of glibc's expf (since 2.28, from Arm's optimized-routines), so rounding the
+// result to float gives glibc's expf bit for bit: checked on every float in [-4.6, 0], the
+// range used here (arguments -sigma in [-4.5, 0]).
+inline __m256d exp4_pd(__m256d x) {
+  const __m256d inv_ln2_n = _mm256_set1_pd(0x1.71547652b82fep+0 * 32);
+  const __m256d shift = _mm256_set1_pd(0x1.8p+52);  // adding it rounds to an integer
+  const __m256d kd_shifted = _mm256_fmadd_pd(inv_ln2_n, x, shift);
+  const __m256i ki = _mm256_castpd_si256(kd_shifted);  // k in the low bits
+  const __m256d kd = _mm256_sub_pd(kd_shifted, shift);
+  const __m256d r = _mm256_fmsub_pd(inv_ln2_n, x, kd);
+  const __m256i idx = _mm256_and_si256(ki, _mm256_set1_epi64x(31));
+  const __m256i t = _mm256_add_epi64(
+      _mm256_i64gather_epi64(reinterpret_cast<const long long*>(kExp2Table), idx, 8),
+      _mm256_slli_epi64(ki, 47));
+  const __m256d s = _mm256_castsi256_pd(t);
+  const __m256d c0 = _mm256_set1_pd(0x1.c6af84b912394p-5 / 32 / 32 / 32);
+  const __m256d c1 = _mm256_set1_pd(0x1.ebfce50fac4f3p-3 / 32 / 32);
+  const __m256d c2 = _mm256_set1_pd(0x1.62e42ff0c52d6p-1 / 32);
+  const __m256d z = _mm256_fmadd_pd(c0, r, c1);
+  const __m256d y = _mm256_fmadd_pd(z, _mm256_mul_pd(r, r),
+                                    _mm256_fmadd_pd(c2, r, _mm256_set1_pd(1.0)));
+  return _mm256_mul_pd(y, s);
+}
+
+// std::exp of 8 floats in [-4.6, 0] (see exp4_pd). The argument is first clamped to [-10, 0]
+// (NaN passes through) so that lanes outside the range, whose results are discarded, stay
+// finite.
+inline __m256 exp8(__m256 x) {
+  x = _mm256_max_ps(_mm256_set1_ps(-10.f), _mm256_min_ps(_mm256_setzero_ps(), x));
+  const __m256d lo = exp4_pd(_mm256_cvtps_pd(_mm256_castps256_ps128(x)));
+  const __m256d hi = exp4_pd(_mm256_cvtps_pd(_mm256_extractf128_ps(x, 1)));
+  return _mm256_set_m128(_mm256_cvtpd_ps(hi), _mm256_cvtpd_ps(lo));
+}
+
+// Sum of the 8 lanes in a fixed order.
+inline float hsum8(__m256 v) {
+  __m128 s = _mm_add_ps(_mm256_castps256_ps128(v), _mm256_extractf128_ps(v, 1));
+  s = _mm_add_ps(s, _mm_movehl_ps(s, s));
+  s = _mm_add_ss(s, _mm_movehdup_ps(s));
+  return _mm_cvtss_f32(s);
+}
+
+inline bool none(__m256 m) { return _mm256_movemask_ps(m) == 0; }
+
+// A Gaussian's data as the tile loops read it: its unclipped pixel box (box_range), conic,
+// opacity, s_max and, for D <= 5, its colour, in one cache line. The tile lists visit the
+// Gaussians in depth order, scattered in memory: one line per visit (prefetched a few
+// Gaussians ahead) instead of one per input tensor, and box and s_max (a log) are computed
+// once per Gaussian instead of once per tile.
+struct alignas(64) PackedSplat {
+  float mx, my, a, b, cc, op, s_max;
+  int32_t x0, x1, y0, y1;
+  float col[5];
+};
+constexpr int64_t kPackedColors = 5;
+constexpr int64_t kPrefetch = 8;  // Gaussians ahead
+
+struct PackedSplats {
+  std::unique_ptr<PackedSplat[]> rec;  // one per Gaussian listed in some tile, by index
+  std::vector<int32_t> at;             // per tile-list entry (as ids): its Gaussian's record
+};
+
+// Records of the Gaussians listed in the tile lists (offsets off, ids; C cameras, nt tiles
+// each), in index order.
+PackedSplats pack_splats(const float* M, const float* Q, const float* F, const float* O,
+                         const float* E, int64_t C, int64_t N, int64_t D, int64_t nt,
+                         const int64_t* off, const int32_t* ids, int nth) {
+  std::vector<int32_t> slot(C * N, -1);
+  for (int64_t c = 0; c < C; ++c)
+    for (int64_t e = off[c * nt]; e < off[(c + 1) * nt]; ++e) slot[c * N + ids[e]] = 0;
+  int32_t n_used = 0;
+  for (int32_t& v : slot)
+    if (v == 0) v = n_used++;
+  PackedSplats P{std::unique_ptr<PackedSplat[]>(new PackedSplat[n_used]),
+                 std::vector<int32_t>(off[C * nt])};
+  for (int64_t c = 0; c < C; ++c)
+    for (int64_t e = off[c * nt]; e < off[(c + 1) * nt]; ++e) P.at[e] = slot[c * N + ids[e]];
+  const int64_t block = 4096;
+  run_tasks((C * N + block - 1) / block, nth, [&](int64_t task, int) {
+    for (int64_t g = task * block; g < std::min(C * N, (task + 1) * block); ++g) {
+      if (slot[g] < 0) continue;
+      PackedSplat& p = P.rec[slot[g]];
+      int64_t x0, x1, y0, y1;
+      box_range<float>(M[g * 2], E[g * 2], x0, x1);
+      box_range<float>(M[g * 2 + 1], E[g * 2 + 1], y0, y1);
+      p.mx = M[g * 2]; p.my = M[g * 2 + 1];
+      p.a = Q[g * 3]; p.b = Q[g * 3 + 1]; p.cc = Q[g * 3 + 2]; p.op = O[g];
+      p.s_max = std::min((float)kSigmaMax, sigma_reach(p.op));
+      p.x0 = (int32_t)x0; p.x1 = (int32_t)x1; p.y0 = (int32_t)y0; p.y1 = (int32_t)y1;
+      for (int64_t d = 0; d < kPackedColors; ++d) p.col[d] = d < D ? F[g * D + d] : 0.f;
+    }
+  });
+  return P;
+}
+
+// What the tile loops need to find Gaussian k of a tile list: its index g0 + ids[k] (g0 = c N
+// for camera c), its record S[at[k]], its colour, and the tile rectangle.
+struct TileArgs {
+  const PackedSplat* S;
+  const int32_t* at;
+  const float* F;
+  const int32_t* ids;
+  int64_t g0, D, tile, px0, py0, tw, th;
+  void prefetch(int64_t k) const {
+    _mm_prefetch(reinterpret_cast<const char*>(S + at[k]), _MM_HINT_T0);
+    if (D > kPackedColors)
+      _mm_prefetch(reinterpret_cast<const char*>(F + (g0 + ids[k]) * D), _MM_HINT_T0);
+  }
+};
+
+// Gaussian k of the tile list with its box clipped to the tile; false if it reaches no pixel
+// of the tile (the scalar loops' tests).
+struct Splat {
+  int64_t g, x0, x1, y0, y1;
+  float mx, my, a, b, cc, op, s_max;
+  const float* col;
+};
+
+inline bool splat_in_tile(const TileArgs& A, int64_t k, Splat& s) {
+  s.g = A.g0 + A.ids[k];
+  const PackedSplat& p = A.S[A.at[k]];
+  s.x0 = std::max<int64_t>(p.x0, A.px0); s.x1 = std::min<int64_t>(p.x1, A.px0 + A.tw - 1);
+  s.y0 = std::max<int64_t>(p.y0, A.py0); s.y1 = std::min<int64_t>(p.y1, A.py0 + A.th - 1);
+  if (s.x0 > s.x1 || s.y0 > s.y1) return false;
+  s.mx = p.mx; s.my = p.my; s.a = p.a; s.b = p.b; s.cc = p.cc; s.op = p.op; s.s_max = p.s_max;
+  s.col = A.D <= kPackedColors ? p.col : A.F + s.g * A.D;
+  return s.s_max >= 0;
+}
+
+// Chunk of 8 pixels (x, y) .. (x + 7, y): column mask (x + l <= x1) and the per-column terms.
+struct Chunk {
+  __m256 colm, dx, adx, adxdx, bdx;
+  Chunk(const Splat& s, int64_t x) {
+    const __m256i lane = _mm256_setr_epi32(0, 1, 2, 3, 4, 5, 6, 7);
+    colm = _mm256_castsi256_ps(
+        _mm256_cmpgt_epi32(_mm256_set1_epi32((int32_t)(s.x1 - x + 1)), lane));
+    const __m256 xc = _mm256_add_ps(
+        _mm256_cvtepi32_ps(_mm256_add_epi32(_mm256_set1_epi32((int32_t)x), lane)),
+        _mm256_set1_ps(0.5f));  // (float)i + 0.5f
+    dx = _mm256_sub_ps(_mm256_set1_ps(s.mx), xc);
+    adx = _mm256_mul_ps(_mm256_set1_ps(s.a), dx);
+    adxdx = _mm256_mul_ps(adx, dx);
+    bdx = _mm256_mul_ps(_mm256_set1_ps(s.b), dx);
+  }
+};
+
+// sigma = 0.5 (a dx dx + cc dy dy) + b dx dy, rounded as in the scalar loop; dy of row y.
+inline __m256 chunk_sigma(const Splat& s, const Chunk& ch, float dy) {
+  const float ccdydy = s.cc * dy * dy;
+  return _mm256_add_ps(
+      _mm256_mul_ps(_mm256_set1_ps(0.5f), _mm256_add_ps(ch.adxdx, _mm256_set1_ps(ccdydy))),
+      _mm256_mul_ps(ch.bdx, _mm256_set1_ps(dy)));
+}
+
+// Lanes of m that pass the sigma tests (a NaN sigma passes, as in the scalar loop).
+inline __m256 sigma_pass(__m256 m, __m256 sigma, const Splat& s) {
+  const __m256 out = _mm256_or_ps(_mm256_cmp_ps(sigma, _mm256_set1_ps(s.s_max), _CMP_GT_OQ),
+                                  _mm256_cmp_ps(sigma, _mm256_setzero_ps(), _CMP_LT_OQ));
+  return _mm256_andnot_ps(out, m);
+}
+
+inline __m256 negate(__m256 v) { return _mm256_xor_ps(v, _mm256_set1_ps(-0.f)); }
+
+// acc += v in the lanes of m (the other lanes add +0, whatever v holds there)
+inline void add_masked(__m256& acc, __m256 m, __m256 v) {
+  acc = _mm256_add_ps(acc, _mm256_and_ps(m, v));
+}
+
+// Forward pass of one tile, Gaussians ids[kb:ke] in depth order (see forward_impl for the
+// scalar loop it mirrors). Writes the tile's pixels of out, T_final and last (image row stride
+// W, pixel index pix0 of the tile's first pixel).
+void forward_tile_f32(const TileArgs& A, int64_t kb, int64_t ke, std::vector<float>& fbuf,
+                      std::vector<int32_t>& ibuf, float* out, float* Tf, int32_t* last,
+                      int64_t W, int64_t pix0) {
+  const int64_t D = A.D, tile = A.tile, PS = tile * tile + 8;
+  fbuf.assign(PS * (D + 1), 0.f);
+  float* T = fbuf.data();  // transmittance
+  float* acc = T + PS;     // channel d at acc + d PS
+  std::fill(T, T + PS, 1.f);
+  ibuf.assign(2 * PS, -1);
+  int32_t* live = ibuf.data();  // -1 while the pixel is not done, else 0
+  int32_t* lastk = live + PS;
+  const __m256 one = _mm256_set1_ps(1.f), amax = _mm256_set1_ps((float)kAlphaMax),
+               amin = _mm256_set1_ps((float)kAlphaMin), tmin = _mm256_set1_ps((float)kTMin);
+  int64_t n_done = 0;
+  const int64_t n_pix = A.tw * A.th;
+  Splat s;
+  for (int64_t k = kb; k < ke && n_done < n_pix; ++k) {
+    if (k + kPrefetch < ke) A.prefetch(k + kPrefetch);
+    if (!splat_in_tile(A, k, s)) continue;
+    const float* col = s.col;
+    const __m256 op = _mm256_set1_ps(s.op);
+    const __m256i kv = _mm256_set1_epi32((int32_t)k);
+    for (int64_t x = s.x0; x <= s.x1; x += 8) {
+      const Chunk ch(s, x);
+      for (int64_t y = s.y0; y <= s.y1; ++y) {
+        const int64_t q = (y - A.py0) * tile + (x - A.px0);
+        __m256i lv = _mm256_loadu_si256(reinterpret_cast<const __m256i*>(live + q));
+        __m256 m = _mm256_and_ps(ch.colm, _mm256_castsi256_ps(lv));
+        if (none(m)) continue;
+        const float dy = s.my - ((float)y + 0.5f);
+        const __m256 sigma = chunk_sigma(s, ch, dy);
+        m = sigma_pass(m, sigma, s);
+        if (none(m)) continue;
+        // min(raw, 0.99) keeps 0.99 for a NaN raw, as std::min(0.99, raw)
+        const __m256 alpha = _mm256_min_ps(_mm256_mul_ps(op, exp8(negate(sigma))), amax);
+        m = _mm256_andnot_ps(_mm256_cmp_ps(alpha, amin, _CMP_LT_OQ), m);
+        const __m256 Tq = _mm256_loadu_ps(T + q);
+        const __m256 nT = _mm256_mul_ps(Tq, _mm256_sub_ps(one, alpha));
+        const __m256 stop = _mm256_and_ps(m, _mm256_cmp_ps(nT, tmin, _CMP_LE_OQ));
+        n_done += __builtin_popcount(_mm256_movemask_ps(stop));
+        lv = _mm256_andnot_si256(_mm256_castps_si256(stop), lv);
+        _mm256_storeu_si256(reinterpret_cast<__m256i*>(live + q), lv);
+        const __m256 blend = _mm256_andnot_ps(stop, m);
+        const __m256 w = _mm256_mul_ps(alpha, Tq);
+        for (int64_t d = 0; d < D; ++d) {
+          float* ad = acc + d * PS + q;
+          const __m256 v = _mm256_loadu_ps(ad);
+          _mm256_storeu_ps(ad, _mm256_blendv_ps(
+              v, _mm256_add_ps(v, _mm256_mul_ps(w, _mm256_set1_ps(col[d]))), blend));
+        }
+        _mm256_storeu_ps(T + q, _mm256_blendv_ps(Tq, nT, blend));
+        __m256i* lk = reinterpret_cast<__m256i*>(lastk + q);
+        _mm256_storeu_si256(lk, _mm256_blendv_epi8(_mm256_loadu_si256(lk), kv,
+                                                   _mm256_castps_si256(blend)));
+      }
+    }
+  }
+  for (int64_t j = 0; j < A.th; ++j) {
+    for (int64_t i = 0; i < A.tw; ++i) {
+      const int64_t q = j * tile + i, pix = pix0 + j * W + i;
+      for (int64_t d = 0; d < D; ++d) out[pix * D + d] = acc[d * PS + q];
+      Tf[pix] = T[q];
+      last[pix] = lastk[q];
+    }
+  }
+}
+
+// Backward pass of one tile (see backward_impl for the scalar loop it mirrors): Gaussians from
+// ids[kmax] down to ids[k0]; gradients added to the per-thread records `mine`.
+void backward_tile_f32(const TileArgs& A, int64_t k0, int64_t kmax, const float* Tf,
+                       const int32_t* LK, const float* GO, const float* GA, int64_t W,
+                       int64_t pix0, float* mine, int64_t stride, bool absgrad,
+                       std::vector<float>& fbuf, std::vector<int32_t>& ibuf) {
+  const int64_t D = A.D, tile = A.tile, PS = tile * tile + 8;
+  fbuf.assign(PS * (3 + 2 * D) + 8 * D, 0.f);
+  float* T = fbuf.data();  // transmittance behind the Gaussians still to visit
+  float* Tfin = T + PS;
+  float* ga = Tfin + PS;
+  float* S = ga + PS;       // channel d at S + d PS: colour accumulated behind
+  float* go = S + D * PS;   // channel d at go + d PS: grad_out
+  float* gc = go + D * PS;  // per-lane colour gradient sums of the current Gaussian, 8 per d
+  ibuf.assign(PS, -1);
+  int32_t* lastk = ibuf.data();
+  std::fill(T, T + PS, 1.f);
+  std::fill(Tfin, Tfin + PS, 1.f);
+  for (int64_t j = 0; j < A.th; ++j) {
+    for (int64_t i = 0; i < A.tw; ++i) {
+      const int64_t q = j * tile + i, pix = pix0 + j * W + i;
+      T[q] = Tfin[q] = Tf[pix];
+      lastk[q] = LK[pix];
+      ga[q] = GA[pix];
+      for (int64_t d = 0; d < D; ++d) go[d * PS + q] = GO[pix * D + d];
+    }
+  }
+  const __m256 one = _mm256_set1_ps(1.f), half = _mm256_set1_ps(0.5f),
+               amax = _mm256_set1_ps((float)kAlphaMax), amin = _mm256_set1_ps((float)kAlphaMin),
+               zero = _mm256_setzero_ps(), sign = _mm256_set1_ps(-0.f);
+  Splat s;
+  for (int64_t k = kmax; k >= k0; --k) {
+    if (k - kPrefetch >= k0) {
+      A.prefetch(k - kPrefetch);
+      const char* r = reinterpret_cast<const char*>(mine + (A.g0 + A.ids[k - kPrefetch]) * stride);
+      _mm_prefetch(r, _MM_HINT_T0);
+      _mm_prefetch(r + stride * sizeof(float) - 1, _MM_HINT_T0);
+    }
+    if (!splat_in_tile(A, k, s)) continue;
+    const float* col = s.col;
+    const __m256 op = _mm256_set1_ps(s.op);
+    const __m256i km1 = _mm256_set1_epi32((int32_t)(k - 1));
+    __m256 gm0 = zero, gm1 = zero, gq0 = zero, gq1 = zero, gq2 = zero, gop = zero,
+           gab0 = zero, gab1 = zero;
+    std::fill(gc, gc + 8 * D, 0.f);
+    bool touched = false;
+    for (int64_t x = s.x0; x <= s.x1; x += 8) {
+      const Chunk ch(s, x);
+      for (int64_t y = s.y0; y <= s.y1; ++y) {
+        const int64_t q = (y - A.py0) * tile + (x - A.px0);
+        const __m256i lk = _mm256_loadu_si256(reinterpret_cast<const __m256i*>(lastk + q));
+        __m256 m = _mm256_and_ps(ch.colm, _mm256_castsi256_ps(_mm256_cmpgt_epi32(lk, km1)));
+        if (none(m)) continue;
+        const float dy = s.my - ((float)y + 0.5f);
+        const __m256 sigma = chunk_sigma(s, ch, dy);
+        m = sigma_pass(m, sigma, s);
+        if (none(m)) continue;
+        touched = true;
+        const __m256 gauss = exp8(negate(sigma));
+        const __m256 raw = _mm256_mul_ps(op, gauss);
+        const __m256 alpha = _mm256_min_ps(raw, amax);
+        m = _mm256_andnot_ps(_mm256_cmp_ps(alpha, amin, _CMP_LT_OQ), m);
+        const __m256 inv1m = _mm256_div_ps(one, _mm256_sub_ps(one, alpha));
+        const __m256 Tq = _mm256_loadu_ps(T + q);
+        const __m256 Ti = _mm256_mul_ps(Tq, inv1m);
+        const __m256 w = _mm256_mul_ps(alpha, Ti);
+        __m256 dL_dalpha = zero;
+        for (int64_t d = 0; d < D; ++d) {
+          const __m256 god = _mm256_loadu_ps(go + d * PS + q);
+          float* Sd = S + d * PS + q;
+          const __m256 Sq = _mm256_loadu_ps(Sd);
+          const __m256 cd = _mm256_set1_ps(col[d]);
+          float* gcd = gc + 8 * d;
+          __m256 gcv = _mm256_loadu_ps(gcd);
+          add_masked(gcv, m, _mm256_mul_ps(w, god));
+          _mm256_storeu_ps(gcd, gcv);
+          dL_dalpha = _mm256_add_ps(dL_dalpha, _mm256_mul_ps(god, _mm256_sub_ps(
+              _mm256_mul_ps(cd, Ti), _mm256_mul_ps(Sq, inv1m))));
+          _mm256_storeu_ps(Sd, _mm256_blendv_ps(Sq, _mm256_add_ps(Sq, _mm256_mul_ps(cd, w)), m));
+        }
+        dL_dalpha = _mm256_add_ps(dL_dalpha, _mm256_mul_ps(
+            _mm256_mul_ps(_mm256_loadu_ps(ga + q), _mm256_loadu_ps(Tfin + q)), inv1m));
+        _mm256_storeu_ps(T + q, _mm256_blendv_ps(Tq, Ti, m));
+        // clamped alpha: no gradient through it (a NaN raw passes, as in the scalar loop)
+        const __m256 mg = _mm256_andnot_ps(_mm256_cmp_ps(raw, amax, _CMP_GE_OQ), m);
+        const __m256 dL_dsigma = _mm256_mul_ps(negate(alpha), dL_dalpha);
+        add_masked(gop, mg, _mm256_mul_ps(gauss, dL_dalpha));
+        const __m256 vdy = _mm256_set1_ps(dy);
+        const __m256 gmx =
+            _mm256_mul_ps(dL_dsigma, _mm256_add_ps(ch.adx, _mm256_set1_ps(s.b * dy)));
+        const __m256 gmy =
+            _mm256_mul_ps(dL_dsigma, _mm256_add_ps(ch.bdx, _mm256_set1_ps(s.cc * dy)));
+        add_masked(gm0, mg, gmx);
+        add_masked(gm1, mg, gmy);
+        add_masked(gab0, mg, _mm256_andnot_ps(sign, gmx));  // |gmx|
+        add_masked(gab1, mg, _mm256_andnot_ps(sign, gmy));
+        const __m256 hs = _mm256_mul_ps(dL_dsigma, half);
+        add_masked(gq0, mg, _mm256_mul_ps(_mm256_mul_ps(hs, ch.dx), ch.dx));
+        add_masked(gq1, mg, _mm256_mul_ps(_mm256_mul_ps(dL_dsigma, ch.dx), vdy));
+        add_masked(gq2, mg, _mm256_mul_ps(_mm256_mul_ps(hs, vdy), vdy));
+      }
+    }
+    if (!touched) continue;
+    float* r = mine + s.g * stride;
+    r[0] += hsum8(gm0); r[1] += hsum8(gm1);
+    r[2] += hsum8(gq0); r[3] += hsum8(gq1); r[4] += hsum8(gq2);
+    r[5] += hsum8(gop);
+    for (int64_t d = 0; d < D; ++d) r[6 + d] += hsum8(_mm256_loadu_ps(gc + 8 * d));
+    if (absgrad) { r[6 + D] += hsum8(gab0); r[7 + D] += hsum8(gab1); }
+  }
+}
+#endif  // GDIFF_RASTER_SIMD
 
 struct Bins {
   at::Tensor offsets;  // [C * n_tiles + 1] int64: list of tile t is ids[offsets[t]:offsets[t+1]]
@@ -165,12 +557,27 @@ std::vector<at::Tensor> forward_impl(const at::Tensor& means2d, const at::Tensor
   const int nth = num_threads();
   const int64_t P = tile * tile;
   std::vector<std::vector<scalar_t>> scratch(nth);
+#if GDIFF_RASTER_SIMD
+  std::vector<std::vector<int32_t>> iscratch(nth);
+  PackedSplats packed;
+  if constexpr (std::is_same<scalar_t, float>::value)
+    packed = pack_splats(M, Q, F, O, E, C, N, D, nt, off, ids, nth);
+#endif
 
   run_tasks(C * nt, nth, [&](int64_t task, int tid) {
     const int64_t c = task / nt, t = task % nt;
     const int64_t px0 = (t % tx_n) * tile, py0 = (t / tx_n) * tile;
     const int64_t tw = std::min(tile, W - px0), th = std::min(tile, H - py0);
     std::vector<scalar_t>& buf = scratch[tid];
+#if GDIFF_RASTER_SIMD
+    if constexpr (std::is_same<scalar_t, float>::value) {
+      const TileArgs A{packed.rec.get(), packed.at.data(), F, ids, c * N, D, tile, px0,
+                        py0, tw, th};
+      forward_tile_f32(A, off[c * nt + t], off[c * nt + t + 1], buf, iscratch[tid], out_p,
+                       Tf_p, last_p, W, (c * H + py0) * W + px0);
+      return;
+    }
+#endif
     buf.assign(P * (D + 1), 0);
     scalar_t* acc = buf.data();
     scalar_t* T = acc + P * D;
@@ -256,12 +663,32 @@ std::vector<at::Tensor> backward_impl(
   const scalar_t* GA = grad_alpha.data_ptr<scalar_t>();
   scalar_t* ACC = acc_all.data_ptr<scalar_t>();
   const int64_t P = tile * tile;
+#if GDIFF_RASTER_SIMD
+  std::vector<std::vector<scalar_t>> scratch(nth);
+  std::vector<std::vector<int32_t>> iscratch(nth);
+  PackedSplats packed;
+  if constexpr (std::is_same<scalar_t, float>::value)
+    packed = pack_splats(M, Q, F, O, E, C, N, D, nt, off, ids, nth);
+#endif
 
   run_tasks(C * nt, nth, [&](int64_t task, int tid) {
     const int64_t c = task / nt, t = task % nt;
     const int64_t px0 = (t % tx_n) * tile, py0 = (t / tx_n) * tile;
     const int64_t tw = std::min(tile, W - px0), th = std::min(tile, H - py0);
     scalar_t* mine = ACC + (int64_t)tid * G * stride;
+#if GDIFF_RASTER_SIMD
+    if constexpr (std::is_same<scalar_t, float>::value) {
+      const int64_t pix0 = (c * H + py0) * W + px0;
+      int64_t kmax = -1;
+      for (int64_t j = 0; j < th; ++j)
+        for (int64_t i = 0; i < tw; ++i) kmax = std::max<int64_t>(kmax, LK[pix0 + j * W + i]);
+      const TileArgs A{packed.rec.get(), packed.at.data(), F, ids, c * N, D, tile, px0,
+                        py0, tw, th};
+      backward_tile_f32(A, off[c * nt + t], kmax, Tf, LK, GO, GA, W, pix0, mine, stride,
+                        absgrad, scratch[tid], iscratch[tid]);
+      return;
+    }
+#endif
     std::vector<scalar_t> T(P, 1), Tfin(P, 1), S(P * D, 0), go(P * D, 0), ga(P, 0);
     std::vector<int32_t> lastk(P, -1);
     int64_t kmax = -1;

@@ -531,6 +531,55 @@ Bins bin_gaussians(const at::Tensor& means2d, const at::Tensor& extents,
   return {offsets, ids};
 }
 
+// The scalar compositing loop of one tile, shared by the forward pass and rasterize_weights:
+// Gaussians ids[kb:ke] (indices within the camera, offset by base) front to back, each over
+// its box clipped to the tile; T [tile*tile] transmittance and done flags per tile pixel,
+// row stride tile. For every pixel a Gaussian is blended into, blend(q, g, k, w) gets the tile
+// pixel q, the Gaussian's index g (base included), its list position k and the weight
+// w = alpha T before T is updated. A pixel stops (done) before the Gaussian that would bring
+// T to <= 1e-4; the loop ends when all tw x th pixels have.
+template <typename scalar_t, typename Blend>
+inline void composite_tile(const scalar_t* M, const scalar_t* Q, const scalar_t* O,
+                           const scalar_t* E, const int32_t* ids, int64_t kb, int64_t ke,
+                           int64_t base, int64_t tile, int64_t px0, int64_t py0, int64_t tw,
+                           int64_t th, scalar_t* T, uint8_t* done, Blend&& blend) {
+  int64_t n_done = 0;
+  const int64_t n_pix = tw * th;
+  for (int64_t k = kb; k < ke && n_done < n_pix; ++k) {
+    const int64_t g = base + ids[k];
+    const scalar_t mx = M[g * 2], my = M[g * 2 + 1];
+    int64_t x0, x1, y0, y1;
+    box_range<scalar_t>(mx, E[g * 2], x0, x1);
+    box_range<scalar_t>(my, E[g * 2 + 1], y0, y1);
+    x0 = std::max(x0, px0); x1 = std::min(x1, px0 + tw - 1);
+    y0 = std::max(y0, py0); y1 = std::min(y1, py0 + th - 1);
+    if (x0 > x1 || y0 > y1) continue;
+    const scalar_t a = Q[g * 3], b = Q[g * 3 + 1], cc = Q[g * 3 + 2], op = O[g];
+    const scalar_t s_max = std::min((scalar_t)kSigmaMax, sigma_reach(op));
+    if (!(s_max >= 0)) continue;
+    for (int64_t j = y0; j <= y1; ++j) {
+      const scalar_t dy = my - ((scalar_t)j + (scalar_t)0.5);
+      for (int64_t i = x0; i <= x1; ++i) {
+        const int64_t q = (j - py0) * tile + (i - px0);
+        if (done[q]) continue;
+        const scalar_t dx = mx - ((scalar_t)i + (scalar_t)0.5);
+        const scalar_t sigma = (scalar_t)0.5 * (a * dx * dx + cc * dy * dy) + b * dx * dy;
+        if (sigma > s_max || sigma < 0) continue;
+        const scalar_t alpha = std::min((scalar_t)kAlphaMax, op * std::exp(-sigma));
+        if (alpha < (scalar_t)kAlphaMin) continue;
+        const scalar_t nT = T[q] * (1 - alpha);
+        if (nT <= (scalar_t)kTMin) {
+          done[q] = 1;
+          ++n_done;
+          continue;
+        }
+        blend(q, g, k, alpha * T[q]);
+        T[q] = nT;
+      }
+    }
+  }
+}
+
 template <typename scalar_t>
 std::vector<at::Tensor> forward_impl(const at::Tensor& means2d, const at::Tensor& conics,
                                         const at::Tensor& colors, const at::Tensor& opacities,
@@ -584,45 +633,13 @@ std::vector<at::Tensor> forward_impl(const at::Tensor& means2d, const at::Tensor
     std::vector<int32_t> lastk(P, -1);
     std::vector<uint8_t> done(P, 0);
     for (int64_t q = 0; q < P; ++q) T[q] = 1;
-    int64_t n_done = 0;
-    const int64_t n_pix = tw * th;
-    for (int64_t k = off[c * nt + t]; k < off[c * nt + t + 1] && n_done < n_pix; ++k) {
-      const int64_t g = (int64_t)c * N + ids[k];
-      const scalar_t mx = M[g * 2], my = M[g * 2 + 1];
-      int64_t x0, x1, y0, y1;
-      box_range<scalar_t>(mx, E[g * 2], x0, x1);
-      box_range<scalar_t>(my, E[g * 2 + 1], y0, y1);
-      x0 = std::max(x0, px0); x1 = std::min(x1, px0 + tw - 1);
-      y0 = std::max(y0, py0); y1 = std::min(y1, py0 + th - 1);
-      if (x0 > x1 || y0 > y1) continue;
-      const scalar_t a = Q[g * 3], b = Q[g * 3 + 1], cc = Q[g * 3 + 2], op = O[g];
-      const scalar_t s_max = std::min((scalar_t)kSigmaMax, sigma_reach(op));
-      if (!(s_max >= 0)) continue;
-      const scalar_t* col = F + g * D;
-      for (int64_t j = y0; j <= y1; ++j) {
-        const scalar_t dy = my - ((scalar_t)j + (scalar_t)0.5);
-        for (int64_t i = x0; i <= x1; ++i) {
-          const int64_t q = (j - py0) * tile + (i - px0);
-          if (done[q]) continue;
-          const scalar_t dx = mx - ((scalar_t)i + (scalar_t)0.5);
-          const scalar_t sigma = (scalar_t)0.5 * (a * dx * dx + cc * dy * dy) + b * dx * dy;
-          if (sigma > s_max || sigma < 0) continue;
-          const scalar_t alpha = std::min((scalar_t)kAlphaMax, op * std::exp(-sigma));
-          if (alpha < (scalar_t)kAlphaMin) continue;
-          const scalar_t nT = T[q] * (1 - alpha);
-          if (nT <= (scalar_t)kTMin) {
-            done[q] = 1;
-            ++n_done;
-            continue;
-          }
-          const scalar_t w = alpha * T[q];
-          scalar_t* aq = acc + q * D;
-          for (int64_t d = 0; d < D; ++d) aq[d] += w * col[d];
-          T[q] = nT;
-          lastk[q] = (int32_t)k;
-        }
-      }
-    }
+    composite_tile(M, Q, O, E, ids, off[c * nt + t], off[c * nt + t + 1], c * N, tile, px0,
+                   py0, tw, th, T, done.data(), [&](int64_t q, int64_t g, int64_t k, scalar_t w) {
+                     const scalar_t* col = F + g * D;
+                     scalar_t* aq = acc + q * D;
+                     for (int64_t d = 0; d < D; ++d) aq[d] += w * col[d];
+                     lastk[q] = (int32_t)k;
+                   });
     for (int64_t j = 0; j < th; ++j) {
       for (int64_t i = 0; i < tw; ++i) {
         const int64_t q = j * tile + i;
@@ -814,43 +831,12 @@ std::vector<at::Tensor> weights_impl(const at::Tensor& means2d, const at::Tensor
     std::vector<uint8_t> done(P, 0);
     std::vector<int32_t> pq, pg;  // pairs in traversal order: tile pixel, Gaussian
     std::vector<float> pw;
-    int64_t n_done = 0;
-    const int64_t n_pix = tw * th;
-    for (int64_t k = off[t]; k < off[t + 1] && n_done < n_pix; ++k) {
-      const int64_t g = ids[k];
-      const scalar_t mx = M[g * 2], my = M[g * 2 + 1];
-      int64_t x0, x1, y0, y1;
-      box_range<scalar_t>(mx, E[g * 2], x0, x1);
-      box_range<scalar_t>(my, E[g * 2 + 1], y0, y1);
-      x0 = std::max(x0, px0); x1 = std::min(x1, px0 + tw - 1);
-      y0 = std::max(y0, py0); y1 = std::min(y1, py0 + th - 1);
-      if (x0 > x1 || y0 > y1) continue;
-      const scalar_t a = Q[g * 3], b = Q[g * 3 + 1], cc = Q[g * 3 + 2], op = O[g];
-      const scalar_t s_max = std::min((scalar_t)kSigmaMax, sigma_reach(op));
-      if (!(s_max >= 0)) continue;
-      for (int64_t j = y0; j <= y1; ++j) {
-        const scalar_t dy = my - ((scalar_t)j + (scalar_t)0.5);
-        for (int64_t i = x0; i <= x1; ++i) {
-          const int64_t q = (j - py0) * tile + (i - px0);
-          if (done[q]) continue;
-          const scalar_t dx = mx - ((scalar_t)i + (scalar_t)0.5);
-          const scalar_t sigma = (scalar_t)0.5 * (a * dx * dx + cc * dy * dy) + b * dx * dy;
-          if (sigma > s_max || sigma < 0) continue;
-          const scalar_t al = std::min((scalar_t)kAlphaMax, op * std::exp(-sigma));
-          if (al < (scalar_t)kAlphaMin) continue;
-          const scalar_t nT = T[q] * (1 - al);
-          if (nT <= (scalar_t)kTMin) {
-            done[q] = 1;
-            ++n_done;
-            continue;
-          }
-          pq.push_back((int32_t)q);
-          pg.push_back((int32_t)g);
-          pw.push_back((float)(al * T[q]));
-          T[q] = nT;
-        }
-      }
-    }
+    composite_tile(M, Q, O, E, ids, off[t], off[t + 1], 0, tile, px0, py0, tw, th, T.data(),
+                   done.data(), [&](int64_t q, int64_t g, int64_t, scalar_t w) {
+                     pq.push_back((int32_t)q);
+                     pg.push_back((int32_t)g);
+                     pw.push_back((float)w);
+                   });
     // stable counting sort of the pairs by tile pixel
     std::vector<int64_t> start(P + 1, 0);
     for (int32_t q : pq) ++start[q + 1];

@@ -186,6 +186,22 @@ def test_features_are_alpha_blended_without_background_and_match_colour_render()
     np.testing.assert_allclose(out["rgb"], ref, atol=1e-5)
 
 
+def _varied_model(rng, n: int, scale: float, opacity_mean: float, opacity_sd: float,
+                  scale_sd: float = 0.0, opacity: float = 0.8):
+    """A static model of ``n`` random Gaussians (positions around the origin, random colours)
+    with normally distributed opacity logits and, with ``scale_sd``, log-scales jittered per
+    axis (anisotropic shapes)."""
+    model = _static_model(rng.normal(scale=0.3, size=(n, 3)), rng.random((n, 3)),
+                          opacity=opacity, scale=scale)
+    with torch.no_grad():
+        model.splats["opacities"].copy_(torch.tensor(rng.normal(opacity_mean, opacity_sd,
+                                                                size=n), dtype=torch.float32))
+        if scale_sd:
+            model.splats["scales"].add_(torch.tensor(rng.normal(scale=scale_sd, size=(n, 3)),
+                                                     dtype=torch.float32))
+    return model
+
+
 def test_cached_blend_weights_reproduce_the_rasterizer():
     """Frozen geometry: features blended with cached weights equal the rasterized features of
     overlapping, partly transparent Gaussians, and the blended change logit equals the head
@@ -193,14 +209,8 @@ def test_cached_blend_weights_reproduce_the_rasterizer():
     from gdiff.partition import (blend_weights, blended_change_logit, change_logit,
                                  render_blended, render_features)
 
-    rng = np.random.default_rng(3)
     n = 300
-    model = _static_model(rng.normal(scale=0.3, size=(n, 3)), rng.random((n, 3)), opacity=0.6,
-                          scale=0.06)
-    with torch.no_grad():  # varied opacities and anisotropic shapes
-        model.splats["opacities"].copy_(torch.tensor(rng.normal(size=n), dtype=torch.float32))
-        model.splats["scales"].add_(torch.tensor(rng.normal(scale=0.5, size=(n, 3)),
-                                                 dtype=torch.float32))
+    model = _varied_model(np.random.default_rng(3), n, 0.06, 0.0, 1.0, 0.5, opacity=0.6)
     cam = _front_camera(48, 36)
     g = model.at_time(0.0)
     head = ChangeHead(n, 8, seed=1)
@@ -226,11 +236,7 @@ def test_compact_blend_weights_equal_the_exact_ones():
 
     rng = np.random.default_rng(5)
     n = 400
-    model = _static_model(rng.normal(scale=0.3, size=(n, 3)), rng.random((n, 3)), opacity=0.8,
-                          scale=0.07)
-    with torch.no_grad():
-        model.splats["opacities"].copy_(torch.tensor(rng.normal(1.0, 1.5, size=n),
-                                                     dtype=torch.float32))
+    model = _varied_model(rng, n, 0.07, 1.0, 1.5)
     cam = _front_camera(48, 36)
     g = model.at_time(0.0)
     vals = torch.tensor(rng.normal(scale=3.0, size=n), dtype=torch.float32)
@@ -264,15 +270,8 @@ def test_compiled_blend_weights_equal_the_torch_ones():
 
     if csrc.load() is None:
         pytest.skip("C++ kernels not built")
-    rng = np.random.default_rng(7)
     n = 500
-    model = _static_model(rng.normal(scale=0.3, size=(n, 3)), rng.random((n, 3)), opacity=0.8,
-                          scale=0.06)
-    with torch.no_grad():
-        model.splats["opacities"].copy_(torch.tensor(rng.normal(0.5, 2.0, size=n),
-                                                     dtype=torch.float32))
-        model.splats["scales"].add_(torch.tensor(rng.normal(scale=0.5, size=(n, 3)),
-                                                 dtype=torch.float32))
+    model = _varied_model(np.random.default_rng(7), n, 0.06, 0.5, 2.0, 0.5)
     cam = _front_camera(53, 37)  # not a multiple of the tile size
     g = model.at_time(0.0)
     with torch.no_grad():

@@ -531,6 +531,31 @@ Bins bin_gaussians(const at::Tensor& means2d, const at::Tensor& extents,
   return {offsets, ids};
 }
 
+// One Gaussian as the scalar loops read it in a tile: mean, conic, opacity, s_max and its
+// 3-sigma box clipped to the tile [x0, x1] x [y0, y1].
+template <typename scalar_t>
+struct TileSplat {
+  scalar_t mx, my, a, b, cc, op, s_max;
+  int64_t x0, x1, y0, y1;
+};
+
+// Gaussian g (index into the [C*N] arrays) in the tile at (px0, py0) of tw x th pixels;
+// false when its box misses the tile or its opacity reaches no pixel (s_max < 0).
+template <typename scalar_t>
+inline bool tile_splat(const scalar_t* M, const scalar_t* Q, const scalar_t* O,
+                       const scalar_t* E, int64_t g, int64_t px0, int64_t py0, int64_t tw,
+                       int64_t th, TileSplat<scalar_t>& s) {
+  s.mx = M[g * 2]; s.my = M[g * 2 + 1];
+  box_range<scalar_t>(s.mx, E[g * 2], s.x0, s.x1);
+  box_range<scalar_t>(s.my, E[g * 2 + 1], s.y0, s.y1);
+  s.x0 = std::max(s.x0, px0); s.x1 = std::min(s.x1, px0 + tw - 1);
+  s.y0 = std::max(s.y0, py0); s.y1 = std::min(s.y1, py0 + th - 1);
+  if (s.x0 > s.x1 || s.y0 > s.y1) return false;
+  s.a = Q[g * 3]; s.b = Q[g * 3 + 1]; s.cc = Q[g * 3 + 2]; s.op = O[g];
+  s.s_max = std::min((scalar_t)kSigmaMax, sigma_reach(s.op));
+  return s.s_max >= 0;
+}
+
 // The scalar compositing loop of one tile, shared by the forward pass and rasterize_weights:
 // Gaussians ids[kb:ke] (indices within the camera, offset by base) front to back, each over
 // its box clipped to the tile; T [tile*tile] transmittance and done flags per tile pixel,
@@ -547,16 +572,11 @@ inline void composite_tile(const scalar_t* M, const scalar_t* Q, const scalar_t*
   const int64_t n_pix = tw * th;
   for (int64_t k = kb; k < ke && n_done < n_pix; ++k) {
     const int64_t g = base + ids[k];
-    const scalar_t mx = M[g * 2], my = M[g * 2 + 1];
-    int64_t x0, x1, y0, y1;
-    box_range<scalar_t>(mx, E[g * 2], x0, x1);
-    box_range<scalar_t>(my, E[g * 2 + 1], y0, y1);
-    x0 = std::max(x0, px0); x1 = std::min(x1, px0 + tw - 1);
-    y0 = std::max(y0, py0); y1 = std::min(y1, py0 + th - 1);
-    if (x0 > x1 || y0 > y1) continue;
-    const scalar_t a = Q[g * 3], b = Q[g * 3 + 1], cc = Q[g * 3 + 2], op = O[g];
-    const scalar_t s_max = std::min((scalar_t)kSigmaMax, sigma_reach(op));
-    if (!(s_max >= 0)) continue;
+    TileSplat<scalar_t> sp;
+    if (!tile_splat(M, Q, O, E, g, px0, py0, tw, th, sp)) continue;
+    const scalar_t mx = sp.mx, my = sp.my, a = sp.a, b = sp.b, cc = sp.cc, op = sp.op;
+    const scalar_t s_max = sp.s_max;
+    const int64_t x0 = sp.x0, x1 = sp.x1, y0 = sp.y0, y1 = sp.y1;
     for (int64_t j = y0; j <= y1; ++j) {
       const scalar_t dy = my - ((scalar_t)j + (scalar_t)0.5);
       for (int64_t i = x0; i <= x1; ++i) {
@@ -722,18 +742,12 @@ std::vector<at::Tensor> backward_impl(
     }
     const int64_t k0 = off[c * nt + t];
     for (int64_t k = kmax; k >= k0; --k) {
-      const int64_t n = ids[k];
-      const int64_t g = c * N + n;
-      const scalar_t mx = M[g * 2], my = M[g * 2 + 1];
-      int64_t x0, x1, y0, y1;
-      box_range<scalar_t>(mx, E[g * 2], x0, x1);
-      box_range<scalar_t>(my, E[g * 2 + 1], y0, y1);
-      x0 = std::max(x0, px0); x1 = std::min(x1, px0 + tw - 1);
-      y0 = std::max(y0, py0); y1 = std::min(y1, py0 + th - 1);
-      if (x0 > x1 || y0 > y1) continue;
-      const scalar_t a = Q[g * 3], b = Q[g * 3 + 1], cc = Q[g * 3 + 2], op = O[g];
-      const scalar_t s_max = std::min((scalar_t)kSigmaMax, sigma_reach(op));
-      if (!(s_max >= 0)) continue;
+      const int64_t g = c * N + ids[k];
+      TileSplat<scalar_t> sp;
+      if (!tile_splat(M, Q, O, E, g, px0, py0, tw, th, sp)) continue;
+      const scalar_t mx = sp.mx, my = sp.my, a = sp.a, b = sp.b, cc = sp.cc, op = sp.op;
+      const scalar_t s_max = sp.s_max;
+      const int64_t x0 = sp.x0, x1 = sp.x1, y0 = sp.y0, y1 = sp.y1;
       const scalar_t* col = F + g * D;
       scalar_t gm[2] = {0, 0}, gq[3] = {0, 0, 0}, gop = 0, gabs[2] = {0, 0};
       scalar_t* gcol = mine + g * stride + 6;

@@ -11,7 +11,7 @@ from dataclasses import dataclass
 import torch
 
 from ..cameras import stack_for_render
-from ..splat.rasterize import (ALPHA_MAX, ALPHA_MIN, SIGMA_MAX, T_MIN, _sigma,
+from ..splat.rasterize import (ALPHA_MAX, ALPHA_MIN, SIGMA_MAX, T_MIN, _pick_backend, _sigma,
                                covariance_3d, opacity_footprint, project_gaussians, rasterize)
 from ..splat import csrc
 from ..splat.reflection import shade
@@ -160,16 +160,14 @@ def blend_weights(g, camera, tolerance: float = 0.0, dtype: torch.dtype = torch.
     """
     dev = g.means.device
     W, H = camera.width, camera.height
+    if backend not in ("auto", "cpp", "torch"):
+        raise ValueError(f"blend_weights backend must be auto, cpp or torch, not {backend!r}")
+    use_cpp = backend != "torch" and _pick_backend(backend, dev) == "cpp"
     viewmats, Ks = stack_for_render([camera], device=dev, dtype=g.means.dtype)
     proj = project_gaussians(g.means, covariance_3d(g.quats, g.scales), viewmats, Ks, W, H)
     ext, drawn = opacity_footprint(proj["extents"], proj["visible"], g.opacities)
-    if backend not in ("auto", "cpp", "torch"):
-        raise ValueError(f"blend_weights backend must be auto, cpp or torch, not {backend!r}")
-    mod = None
-    if backend == "cpp" or (backend == "auto" and dev.type == "cpu"):
-        mod = csrc.load(required=backend == "cpp")
-    if mod is not None:  # the compiled rasterizer's own traversal (same tests and order)
-        counts, gid, wt, alpha = mod.rasterize_weights(
+    if use_cpp:  # the compiled rasterizer's own traversal (same tests and order)
+        counts, gid, wt, alpha = csrc.load(required=True).rasterize_weights(
             proj["means2d"].float().contiguous(), proj["conics"].float().contiguous(),
             g.opacities.float()[None].contiguous(), ext.float().contiguous(),
             drawn.contiguous(), csrc.depth_order(proj["depths"], drawn).contiguous(), W, H,

@@ -820,7 +820,6 @@ std::vector<at::Tensor> weights_impl(const at::Tensor& means2d, const at::Tensor
                                      const at::Tensor& opacities, const at::Tensor& extents,
                                      const at::Tensor& visible, const at::Tensor& order,
                                      int64_t W, int64_t H, int64_t tile, double tolerance) {
-  const int64_t N = means2d.size(1);
   Bins bins = bin_gaussians<scalar_t>(means2d, extents, visible, order, W, H, tile);
   const int64_t tx_n = (W + tile - 1) / tile, ty_n = (H + tile - 1) / tile, nt = tx_n * ty_n;
   at::Tensor counts = at::zeros({H * W}, at::kInt);
@@ -928,7 +927,6 @@ std::vector<at::Tensor> weights_impl(const at::Tensor& means2d, const at::Tensor
     std::vector<int32_t>().swap(tile_gid[t]);
     std::vector<float>().swap(tile_w[t]);
   });
-  (void)N;
   return {counts, gid, weight, alpha};
 }
 

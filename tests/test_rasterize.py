@@ -448,3 +448,23 @@ def test_stale_build_lock_is_removed_and_a_fresh_one_kept(tmp_path):
     old = time.time() - 3600
     os.utime(lock, (old, old))
     assert clear_stale_lock(tmp_path) and not lock.exists()
+
+
+def test_each_version_of_the_kernel_sources_has_its_own_build(tmp_path, monkeypatch):
+    """The build's name follows every kernel source, the included files too (a checkout of
+    another version must not rebuild over this one's build, nor reuse it)."""
+    from gdiff.splat import csrc
+
+    files = []
+    for name in ("kernels.cpp", "rasterize_cpu.cpp", "normalize.h"):
+        f = tmp_path / name
+        f.write_text(f"// {name}\n")
+        files.append(f)
+    monkeypatch.setattr(csrc, "_SOURCES", files)
+    first = csrc.build_name()
+    assert first == csrc.build_name() and first.startswith("gdiff_splat_cpu_")
+    files[2].write_text("// normalize.h, edited\n")  # a header only kernels.cpp includes
+    second = csrc.build_name()
+    assert second != first
+    files[2].write_text("// normalize.h\n")
+    assert csrc.build_name() == first

@@ -2,11 +2,11 @@
 
 :func:`load` compiles the kernels (``kernels.cpp``, which includes every ``*_cpu.cpp`` file
 here) with the machine's C++ compiler through ``torch.utils.cpp_extension.load`` into torch's
-extension cache (one compiler run; the operators are registered as
-``torch.ops.gdiff_splat.*``) (``TORCH_EXTENSIONS_DIR``, default ``~/.cache/torch_extensions``);
-later processes reuse the build. If compilation fails, ``load(required=False)`` logs one
-warning and returns None, and the rasterizer falls back to
-the torch backend. Set ``GDIFF_NO_CPP=1`` to skip the kernel altogether.
+extension cache (``TORCH_EXTENSIONS_DIR``, default ``~/.cache/torch_extensions``; one compiler
+run; the operators are registered as ``torch.ops.gdiff_splat.*``). Each version of the sources
+has its own build there (:func:`build_name`), which later processes reuse. If compilation
+fails, ``load(required=False)`` logs one warning and returns None, and the rasterizer falls
+back to the torch backend. Set ``GDIFF_NO_CPP=1`` to skip the kernel altogether.
 
 The build also holds ``project_cpu.cpp`` (:func:`project_cpp`, the EWA projection of
 :func:`gdiff.splat.rasterize.project_gaussians` with the 3D covariance, fused), ``sh_cpu.cpp``
@@ -72,6 +72,17 @@ def clear_stale_lock(build_dir: str | os.PathLike, max_age: float = STALE_LOCK_S
     return True
 
 
+def build_name() -> str:
+    """Name of the build in torch's extension cache: machine type + a hash of all kernel
+    sources (``kernels.cpp`` includes the others, which torch does not see). Each version of
+    the sources has its own build, so two checkouts of different versions (a release and a
+    development tree, tests of another commit) each reuse theirs instead of rebuilding over
+    each other's on every start; an old version's build stays in the cache (a few MB) until
+    the cache is cleared."""
+    digest = hashlib.sha1(b"".join(p.read_bytes() for p in _SOURCES)).hexdigest()[:12]
+    return f"gdiff_splat_cpu_{platform.machine()}_{digest}"
+
+
 def load(required: bool = False, verbose: bool = False):
     """Build (first time) and import the extension module.
 
@@ -88,16 +99,12 @@ def load(required: bool = False, verbose: bool = False):
                     from torch.utils.cpp_extension import _get_build_directory
                     from torch.utils.cpp_extension import load as _load
 
-                    name = f"gdiff_splat_cpu_{platform.machine()}"
+                    name = build_name()
                     clear_stale_lock(_get_build_directory(name, False))
-                    # torch rebuilds when the listed source or the flags change; the
-                    # included files reach it through this hash of all of them
-                    digest = hashlib.sha1(b"".join(p.read_bytes() for p in _SOURCES))
                     _load(name=name, sources=[str(_UNIT)], verbose=verbose,
                           is_python_module=False,
                           extra_cflags=["-O3", "-march=native", "-ffp-contract=off",
-                                        "-fno-math-errno", "-fopenmp",
-                                        f"-DGDIFF_KERNELS_SHA1={digest.hexdigest()[:16]}"],
+                                        "-fno-math-errno", "-fopenmp"],
                           extra_ldflags=["-fopenmp"])
                     _module = torch.ops.gdiff_splat
                 except Exception as e:  # compiler missing, headers missing, build error

@@ -3,7 +3,8 @@
 Usage::
 
     nice -n 15 python benchmarks/bench.py ../shared/scenes --synth demo,lightchange \
-        --seeds 0,1,2 --results results_bench [--cores 2] [--jobs 1] [--configfile extra.yaml]
+        --seeds 0,1,2 --results results_bench [--cores 2] [--jobs 1] [--configfile extra.yaml] \
+        [--fit-seeds 0,1,2]
     python benchmarks/bench.py --no-run --results results --out /tmp/bench_base
 
 Scenes: every scene folder of ``DIR`` (or the rows of a scenes sheet, overrides kept) plus the
@@ -13,6 +14,9 @@ workflow itself from ``synth:<preset>:<seed>``). They are written into one sheet
 (plus ``--configfile``) in its own working directory ``<results>``
 (``snakemake --directory``): outputs in ``<results>/results/``, logs in ``<results>/logs/``,
 synthetic scenes in ``<results>/resources/synth/``. A rerun continues where the last stopped.
+``--fit-seeds`` runs every scene once per fit seed (``<scene>_f<seed>``, config ``fit.seed``):
+two fits of the same photos differ by more than many changes to the code do, so judge a change
+on the per-scene means this adds (and the spread of their rows), not on one fit.
 ``--jobs`` caps how many jobs run at once (default 1, so rules do not share the cores and their
 times are comparable) within ``--cores``.
 
@@ -48,7 +52,7 @@ sys.path.insert(0, str(ROOT))
 
 import pandas as pd  # noqa: E402
 
-from gdiff.bench import format_table, read_results  # noqa: E402
+from gdiff.bench import fit_seed_name, format_table, read_results, with_fit_seeds  # noqa: E402
 from gdiff.io import atomic_path, write_csv, write_json  # noqa: E402
 from gdiff.scene import discover_scenes, synth_folder_name  # noqa: E402
 
@@ -57,9 +61,11 @@ def _csv_list(text: str) -> list[str]:
     return [x.strip() for x in text.split(",") if x.strip()]
 
 
-def write_sheet(path: Path, source: str | None, presets: list[str], seeds: list[int]) -> list[str]:
+def write_sheet(path: Path, source: str | None, presets: list[str], seeds: list[int],
+                fit_seeds: list[int] | None = None) -> list[str]:
     """One scenes sheet for the whole bench (scene folder paths made absolute); returns the
-    scene names in order."""
+    scene names in order. With ``fit_seeds`` every scene is run once per fit seed, as
+    ``<scene>_f<seed>`` with config ``fit.seed`` set."""
     rows: list[dict] = []
     if source:
         for name, s in discover_scenes(source).items():
@@ -76,6 +82,7 @@ def write_sheet(path: Path, source: str | None, presets: list[str], seeds: list[
     for preset in presets:
         for seed in seeds:
             rows.append({"name": synth_folder_name(preset, seed), "path": f"synth:{preset}:{seed}"})
+    rows = with_fit_seeds(rows, fit_seeds or [])
     names = [r["name"] for r in rows]
     dup = sorted({n for n in names if names.count(n) > 1})
     if dup:
@@ -83,7 +90,7 @@ def write_sheet(path: Path, source: str | None, presets: list[str], seeds: list[
                  "a synthetic scene?); rename the folder or drop the preset")
     if not rows:
         sys.exit("bench: no scenes; give a folder of scenes or a sheet, and/or --synth")
-    df = pd.DataFrame(rows).fillna("")
+    df = pd.DataFrame(rows, dtype=object).fillna("")  # ints stay ints where a column has gaps
     with atomic_path(path) as tmp:
         df.to_csv(tmp, sep="\t", index=False)
     return names
@@ -123,6 +130,9 @@ def main(argv=None) -> int:
     ap.add_argument("--seeds", default="0", help="seeds of the synthetic presets (e.g. 0,1,2)")
     ap.add_argument("--results", default="results_bench", help="the bench's working directory "
                     "(outputs in <results>/results/); with --no-run also a results folder")
+    ap.add_argument("--fit-seeds", default="", help="run every scene once per fit seed "
+                    "(config fit.seed; runs <scene>_f<seed>, with mean rows per scene), e.g. "
+                    "0,1,2: one fit differs from another of the same photos, so compare means")
     ap.add_argument("--cores", type=int, default=2)
     ap.add_argument("--jobs", type=int, default=1, help="jobs at once (default 1)")
     ap.add_argument("--configfile", help="extra configuration over the defaults")
@@ -131,6 +141,7 @@ def main(argv=None) -> int:
                     "folder)")
     args = ap.parse_args(argv)
     presets, seeds = _csv_list(args.synth), [int(s) for s in _csv_list(args.seeds)]
+    fit_seeds = [int(s) for s in _csv_list(args.fit_seeds)]
     work = Path(args.results).resolve()
     run = None
     if args.no_run:
@@ -141,18 +152,20 @@ def main(argv=None) -> int:
         if args.scenes or presets:
             names = [n for n in (discover_scenes(args.scenes) if args.scenes else {})]
             names += [synth_folder_name(p, s) for p in presets for s in seeds]
+            if fit_seeds:
+                names = [fit_seed_name(n, k) for n in names for k in fit_seeds]
         run_json = results.parent / "bench_run.json"
         if run_json.is_file():
             run = json.loads(run_json.read_text())
     else:
         work.mkdir(parents=True, exist_ok=True)
         sheet = work / "scenes.tsv"
-        names = write_sheet(sheet, args.scenes, presets, seeds)
+        names = write_sheet(sheet, args.scenes, presets, seeds, fit_seeds)
         run = run_workflow(work, sheet, args.cores, args.jobs, args.configfile)
         run["scenes"] = names
         write_json(work / "bench_run.json", run)
         results = work / "results"
-    table = read_results(results, names, presets)
+    table = read_results(results, names, presets, fit_seeds)
     out = Path(args.out) if args.out else results
     write_csv(out / "bench.csv", table)
     text = format_table(table)

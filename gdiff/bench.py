@@ -25,7 +25,10 @@ Per scene (the same value on each of its rows):
   training views from ``fit/quality.csv`` (``psnr_views`` says which: ``eval`` or ``train``).
 
 Synthetic scenes run at several seeds (``<preset>_s<seed>``) get extra rows ``<preset> (mean of
-N)``: every number averaged over the seeds.
+N)``: every number averaged over the seeds. A scene fitted at several fit seeds (rows
+``<scene>_f<seed>``, the bench's ``--fit-seeds``) gets a row ``<scene> (mean of N fit seeds)``:
+one fit of a scene differs from another of the same photos by more than many changes do, so a
+change is judged on those means and the spread of their rows.
 """
 
 from __future__ import annotations
@@ -105,28 +108,61 @@ def scene_timings(results: str | Path, scenes: Iterable[str]) -> pd.DataFrame:
     return t
 
 
-def synth_groups(scenes: Iterable[str], presets: Iterable[str]) -> dict[str, list[str]]:
-    """``{preset: [scene names]}`` for scenes named ``<preset>_s<seed>`` (the workflow's name for
-    ``synth:<preset>:<seed>``) of the given presets, seeds in numeric order. (Presets must be
-    named: a scene folder may be called like ``desk_s1`` too.)"""
-    presets = set(presets)
+def fit_seed_name(scene: str, seed: int) -> str:
+    """Name of the run of ``scene`` with fit seed ``seed`` (config ``fit.seed``)."""
+    return f"{scene}_f{seed}"
+
+
+def with_fit_seeds(rows: list[dict], fit_seeds: Iterable[int]) -> list[dict]:
+    """Rows of a scenes sheet (``name``, ``path``, ``<section>.<key>`` overrides), each
+    repeated per fit seed as ``<name>_f<seed>`` (:func:`fit_seed_name`) with ``fit.seed`` set;
+    the rows unchanged when ``fit_seeds`` is empty."""
+    seeds = [int(k) for k in fit_seeds]
+    if not seeds:
+        return list(rows)
+    return [{**r, "name": fit_seed_name(r["name"], k), "fit.seed": k} for r in rows for k in seeds]
+
+
+def fit_seed_groups(scenes: Iterable[str], fit_seeds: Iterable[int]) -> dict[str, list[str]]:
+    """``{scene: [run names]}`` for runs named ``<scene>_f<seed>`` (:func:`fit_seed_name`) with
+    a seed of ``fit_seeds``, seeds in numeric order. (The seeds must be named: a scene folder
+    may be called like ``desk_f1`` too.)"""
+    seeds = {int(x) for x in fit_seeds}
     groups: dict[str, list[tuple[int, str]]] = {}
     for s in scenes:
-        m = re.fullmatch(r"(.+)_s(\d+)", s)
-        if m and m.group(1) in presets:
+        m = re.fullmatch(r"(.+)_f(\d+)", s)
+        if m and int(m.group(2)) in seeds:
             groups.setdefault(m.group(1), []).append((int(m.group(2)), s))
-    return {k: [s for _, s in sorted(v)] for k, v in sorted(groups.items())}
+    return {k: [s for _, s in sorted(v)] for k, v in groups.items()}
+
+
+def synth_groups(scenes: Iterable[str], presets: Iterable[str],
+                 fit_seeds: Iterable[int] = ()) -> dict[str, list[str]]:
+    """``{preset: [scene names]}`` for scenes named ``<preset>_s<seed>`` (the workflow's name for
+    ``synth:<preset>:<seed>``), or ``<preset>_s<seed>_f<fit seed>`` with a seed of
+    ``fit_seeds``, of the given presets, in numeric order. (Presets must be named: a scene
+    folder may be called like ``desk_s1`` too.)"""
+    presets, seeds = set(presets), {int(x) for x in fit_seeds}
+    groups: dict[str, list[tuple[int, int, str]]] = {}
+    for s in scenes:
+        m = re.fullmatch(r"(.+)_s(\d+)(?:_f(\d+))?", s)
+        if m and m.group(1) in presets and (m.group(3) is None or int(m.group(3)) in seeds):
+            groups.setdefault(m.group(1), []).append((int(m.group(2)), int(m.group(3) or 0), s))
+    return {k: [s for *_, s in sorted(v)] for k, v in sorted(groups.items())}
 
 
 def build_table(summary: pd.DataFrame, timings: pd.DataFrame, scene_info: Mapping[str, dict],
-                groups: Mapping[str, list[str]] | None = None) -> pd.DataFrame:
+                groups: Mapping[str, list[str]] | None = None,
+                fit_groups: Mapping[str, list[str]] | None = None) -> pd.DataFrame:
     """The bench table (module docstring) from its parts.
 
     ``summary``: per (scene, method) rows of :func:`gdiff.summary.summarize_metrics` (rows of
     scene ``ALL`` are ignored); ``timings``: ``scene, rule, seconds, cpu_seconds, max_rss_mb``
     (and ``max_pss_mb`` when present);
     ``scene_info``: per scene ``disk_mb``, ``psnr_t0``, ``psnr_t1``, ``psnr_views``;
-    ``groups``: ``{preset: [scenes]}`` whose means are appended as ``<preset> (mean of N)``.
+    ``groups``: ``{preset: [scenes]}`` whose means are appended as ``<preset> (mean of N)``;
+    ``fit_groups``: ``{scene: [runs]}`` whose means are appended as ``<scene> (mean of N fit
+    seeds)`` (before the preset means).
     Scenes without metrics (no eval views, or evaluate not run yet) get one row with an empty
     method. Columns: ``scene, method, n_views`` + quality + :data:`SCENE_COLUMNS` + per rule
     ``wall_/cpu_/mb_<rule>``.
@@ -172,14 +208,15 @@ def build_table(summary: pd.DataFrame, timings: pd.DataFrame, scene_info: Mappin
     cols = (["scene", "method", "n_views"] + list(QUALITY.values()) + SCENE_COLUMNS
             + [f"{k}_{r}" for r in rules for k in ("wall", "cpu", "mb")])
     table = pd.DataFrame(rows, columns=cols)
-    for preset, members in (groups or {}).items():
+    means = [(f"{k} (mean of {{n}} fit seeds)", v) for k, v in (fit_groups or {}).items()]
+    means += [(f"{k} (mean of {{n}})", v) for k, v in (groups or {}).items()]
+    for label, members in means:
         g = table[table["scene"].isin(members)]
         if g.empty:
             continue
-        n = g["scene"].nunique()
         num = [c for c in cols if c not in ("scene", "method", "psnr_views")]
         mean = g.groupby("method", sort=False)[num].mean().reset_index()
-        mean.insert(0, "scene", f"{preset} (mean of {n})")
+        mean.insert(0, "scene", label.format(n=g["scene"].nunique()))
         mean["psnr_views"] = ",".join(sorted(set(g["psnr_views"]) - {""}))
         table = pd.concat([table, mean[cols]], ignore_index=True)
     return table
@@ -285,9 +322,10 @@ def format_scaling(scaling: pd.DataFrame) -> str:
 
 
 def read_results(results: str | Path, scenes: Iterable[str] | None = None,
-                 presets: Iterable[str] = ()) -> pd.DataFrame:
+                 presets: Iterable[str] = (), fit_seeds: Iterable[int] = ()) -> pd.DataFrame:
     """The bench table of a results folder (every scene folder in it, or ``scenes``), with the
-    mean rows of the synthetic presets ``presets`` (over their ``<preset>_s<seed>`` scenes)."""
+    mean rows of the synthetic presets ``presets`` (over their ``<preset>_s<seed>`` scenes) and
+    of each scene run at the fit seeds ``fit_seeds`` (over its ``<scene>_f<seed>`` runs)."""
     results = Path(results)
     scenes = list(scenes) if scenes is not None else scene_folders(results)
     metrics_csvs = [results / s / "eval" / "metrics.csv" for s in scenes]
@@ -300,4 +338,5 @@ def read_results(results: str | Path, scenes: Iterable[str] | None = None,
     info = {s: {"disk_mb": disk_mb(results / s) if (results / s).is_dir() else math.nan,
                 **fit_psnr(results / s)} for s in scenes}
     timings = scene_timings(results, scenes)
-    return build_table(summary, timings, info, synth_groups(scenes, presets))
+    return build_table(summary, timings, info, synth_groups(scenes, presets, fit_seeds),
+                       fit_seed_groups(scenes, fit_seeds))

@@ -101,3 +101,36 @@ def test_scaling_table_growth_per_step_and_quality(tmp_path):
     text = Bn.format_scaling(sc.reset_index())
     assert "| poses | 10.0 | 30.0 | 45.0 | 3.00 | 1.50 |" in text
     assert "x 10->20 (photos x2.00)" in text and "10+10 photos: s" in text
+
+
+def test_fit_seed_runs_sheet_and_means(tmp_path):
+    """--fit-seeds: every scene of the sheet once per fit seed (``fit.seed`` set, other
+    overrides kept), and the table's mean row per scene over its runs; preset means cover the
+    runs of every seed."""
+    from gdiff.scene import discover_scenes
+
+    rows = Bn.with_fit_seeds([{"name": "demo_s0", "path": "synth:demo:0"},
+                              {"name": "desk", "path": "synth:tiny", "fit.max_side": 64}], [0, 2])
+    assert [r["name"] for r in rows] == ["demo_s0_f0", "demo_s0_f2", "desk_f0", "desk_f2"]
+    sheet = tmp_path / "scenes.tsv"
+    pd.DataFrame(rows, dtype=object).fillna("").to_csv(sheet, sep="\t", index=False)
+    specs = discover_scenes(str(sheet))
+    assert specs["demo_s0_f2"].overrides == {"fit": {"seed": 2}}
+    assert specs["demo_s0_f2"].synth_preset == "demo" and specs["demo_s0_f2"].synth_seed == 0
+    assert specs["desk_f0"].overrides == {"fit": {"max_side": 64, "seed": 0}}
+    assert isinstance(specs["desk_f0"].overrides["fit"]["max_side"], int)
+    assert Bn.with_fit_seeds(rows[:1], []) == rows[:1]
+
+    res = tmp_path / "results"
+    _scene(res, "demo_s0_f0", [(30, 10)], {"fit": (100, 900, 180)}, psnr=(20.0, 22.0))
+    _scene(res, "demo_s0_f2", [(10, 30)], {"fit": (120, 900, 180)}, psnr=(22.0, 24.0))
+    _scene(res, "desk_f1", [(20, 20)], {"fit": (50, 700, 90)})  # a folder named like a run
+    assert Bn.fit_seed_groups(Bn.scene_folders(res), [0, 2]) == {
+        "demo_s0": ["demo_s0_f0", "demo_s0_f2"]}
+    t = Bn.read_results(res, presets=["demo"], fit_seeds=[0, 2]).set_index("scene")
+    assert list(t.index) == ["demo_s0_f0", "demo_s0_f2", "desk_f1",
+                             "demo_s0 (mean of 2 fit seeds)", "demo (mean of 2)"]
+    mean = t.loc["demo_s0 (mean of 2 fit seeds)"]
+    assert mean["R"] == pytest.approx(0.5) and mean["psnr_t0"] == pytest.approx(21.0)
+    assert mean["wall_fit"] == pytest.approx(110)
+    assert t.loc["demo (mean of 2)", "R"] == pytest.approx(0.5)

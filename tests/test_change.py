@@ -184,6 +184,11 @@ def test_stage_files(demo_paths, tmp_path, monkeypatch):
                               | read_mask(res / kf["mask_t1"].iloc[1]))).all()
     ch = pd.read_csv(res / "change" / "changes.csv")
     assert set(ch["type"]) <= {"added", "removed", "moved"} and len(ch) == summary["changed"]
+    cand = pd.read_csv(res / "change" / "candidates.csv")
+    assert list(cand.columns) == ["instance", "ids", "types", "n_t0", "n_t1", "n_confirmed",
+                                  "area", "support", "colour", "verdict"]
+    kept = cand[cand["verdict"] != "dropped"]
+    assert set(kept["instance"]) == set(ch["instance"])
     # overlays on request: one per frame, the same IDs; a later run without them removes them
     inst2 = res / "instances_overlays"
     segment_and_track(res / "render", res / "sequence" / "poses.json", inst2,
@@ -858,6 +863,13 @@ def test_id_change_without_3d_or_colour_change_is_not_a_change_under_unchanged_l
             frames[("p1", t, i)] = dict(depth=z, camera=cam, rgb=rgb)
     _, df = compare_paths(ids, frames, CompareOptions())
     assert set(df.loc[df["changed"], "id"]) == {3}, df
+    # both judged objects are listed with the figures of the verdict
+    cand = df.attrs["candidates"].set_index("instance")
+    assert sorted(cand.index) == [2, 3] and list(cand["ids"]) == ["2", "3"]
+    assert cand.loc[3, "verdict"] == "kept: 3D" and cand.loc[3, "support"] >= 0.5
+    assert cand.loc[2, "verdict"] == "dropped"
+    assert cand.loc[2, "support"] < 0.5 and cand.loc[2, "colour"] < 0.25
+    assert (cand["n_t0"] == 0).all() and (cand["n_confirmed"] == len(cams)).all()
     _, ungated = compare_paths(ids, frames, CompareOptions(confirm_support=0.0))
     assert set(ungated.loc[ungated["changed"], "id"]) == {2, 3}  # what the IDs alone say
 

@@ -74,7 +74,8 @@ def test_tiny_end_to_end_with_sigkill_and_local_cluster(tmp_path):
                 "fit/model.pt", "fit/gaussians_t0.ply", "fit/gaussians_t1.ply",
                 "fit/train_log.csv", "fit/quality.csv", "sequence/poses.json",
                 "render/frames.json", "render/p1/t0_sheet.png", "instances/index.json",
-                "change/keyframes.csv", "change/changes.csv", "change/evidence3d.npz",
+                "change/keyframes.csv", "change/changes.csv", "change/candidates.csv",
+                "change/evidence3d.npz",
                 "partition/model.pt",
                 "partition/changed.ply", "partition/unchanged.ply", "eval/metrics.csv"]:
         assert (res / rel).exists(), rel

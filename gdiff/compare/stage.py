@@ -8,6 +8,8 @@ per-ID decision: :mod:`gdiff.compare.change`; which pixels the photos of each ti
 Files (results/<scene>/): reads ``instances/index.json`` (the ID maps and, through it, the
 rendered EXR frames) and ``sequence/poses.json`` (:mod:`gdiff.frames`); writes
 ``change/<path>/<t0|t1|union>/NNNNN.png`` (255 = changed), ``change/changes.csv``,
+``change/candidates.csv`` (every changed object of the ID comparison that the 3D evidence and
+colour test judged, kept or dropped, with the figures it was judged by),
 ``change/evidence3d.npz`` (the changed voxels of the 3D evidence) and, last,
 ``change/keyframes.csv``.
 """
@@ -228,6 +230,10 @@ def _support_3d(df: pd.DataFrame, ids: dict[Key, np.ndarray], evidence: list[Geo
         df.loc[ch[inst == v], "support"] = near[members].sum() / max(total[members].sum(), 1)
 
 
+CANDIDATE_COLUMNS = ["instance", "ids", "types", "n_t0", "n_t1", "n_confirmed", "area",
+                     "support", "colour", "verdict"]
+
+
 def _confirm_by_evidence(df: pd.DataFrame, o: CompareOptions, band: int,
                          light_changed: bool = False) -> None:
     """Keep only the changed objects of the ID comparison that the 3D evidence or their own
@@ -247,24 +253,38 @@ def _confirm_by_evidence(df: pd.DataFrame, o: CompareOptions, band: int,
     :func:`gdiff.compare.change.surround_colour_change`; pooled over the instance weighted by
     ``n_colour``): an object swapped for one of the same shape and size changes no depth, but
     its own colour. ``light_changed`` only words the log.
+
+    Every instance judged, with its figures and verdict (``kept: 3D``, ``kept: colour`` or
+    ``dropped``), goes to ``df.attrs["candidates"]`` (columns :data:`CANDIDATE_COLUMNS`;
+    ``n_t0``, ``n_t1``, ``n_confirmed`` and ``area`` are those of its largest member).
     """
     ch = df.index[df["changed"]]
+    df.attrs["candidates"] = pd.DataFrame(columns=CANDIDATE_COLUMNS)
     if len(ch) == 0:
         return
     inst = df.loc[ch, "instance"].to_numpy()
     colour = np.nan_to_num(df.loc[ch, "colour"].to_numpy(float))  # NaN only where n_colour 0
     weight = df.loc[ch, "n_colour"].to_numpy(float)
-    drop = []
+    drop, rows = [], []
     for v in np.unique(inst):
         sel = inst == v
         support = float(df.loc[ch[sel], "support"].iloc[0])
         w = weight[sel]
         col = float((colour[sel] * w).sum() / w.sum()) if w.sum() else np.nan
-        kept = support >= o.confirm_support or col >= o.confirm_colour
+        verdict = ("kept: 3D" if support >= o.confirm_support else
+                   "kept: colour" if col >= o.confirm_colour else "dropped")
         log.debug("instance %d: %.2f of its pixels near a change in 3D, colour change %.2f: "
-                  "%s", v, support, col, "kept" if kept else "dropped")
-        if not kept:
+                  "%s", v, support, col, verdict)
+        if verdict == "dropped":
             drop.extend(ch[sel])
+        members = df.loc[ch[sel]]
+        head = members.loc[members["area"].idxmax()]
+        rows.append(dict(instance=int(v), ids=" ".join(str(int(i)) for i in members["id"]),
+                         types=" ".join(sorted(set(members["type"]))), n_t0=int(head["n_t0"]),
+                         n_t1=int(head["n_t1"]), n_confirmed=int(head["n_confirmed"]),
+                         area=float(head["area"]), support=support, colour=col,
+                         verdict=verdict))
+    df.attrs["candidates"] = pd.DataFrame(rows, columns=CANDIDATE_COLUMNS)
     n = len(np.unique(inst))
     log.info("%s%d of %d changed objects of the ID comparison changed in 3D (>= %.0f %% of "
              "their pixels within %d px of the 3D evidence) or in colour (by >= %.2f, relative "
@@ -368,6 +388,8 @@ def compare(instances_dir, poses_json, out_dir, options: CompareOptions | None =
                              time=keys[(p, i)], mask_t0=rel["t0"], mask_t1=rel["t1"],
                              mask_union=rel["union"]))
     write_evidence(out_dir / "evidence3d.npz", df.attrs.get("evidence3d", {}))
+    write_csv(out_dir / "candidates.csv",
+              df.attrs.get("candidates", pd.DataFrame(columns=CANDIDATE_COLUMNS)))
     write_csv(out_dir / "changes.csv", df[df["changed"]].drop(columns=["changed"]))
     write_csv(out_dir / "keyframes.csv", pd.DataFrame(rows, columns=[
         "path", "frame", "image", "set", "time", "mask_t0", "mask_t1", "mask_union"]))

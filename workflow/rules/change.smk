@@ -31,6 +31,7 @@ rule compare:
     output:
         keyframes=res("{scene}", "change", "keyframes.csv"),
         changes=res("{scene}", "change", "changes.csv"),
+        candidates=res("{scene}", "change", "candidates.csv"),
         evidence=res("{scene}", "change", "evidence3d.npz"),
     params:
         options=options("compare"),

@@ -52,7 +52,7 @@ sys.path.insert(0, str(ROOT))
 
 import pandas as pd  # noqa: E402
 
-from gdiff.bench import fit_seed_name, format_table, read_results, with_fit_seeds  # noqa: E402
+from gdiff.bench import format_table, read_results, with_fit_seeds  # noqa: E402
 from gdiff.io import atomic_path, write_csv, write_json  # noqa: E402
 from gdiff.scene import discover_scenes, synth_folder_name  # noqa: E402
 
@@ -152,8 +152,7 @@ def main(argv=None) -> int:
         if args.scenes or presets:
             names = [n for n in (discover_scenes(args.scenes) if args.scenes else {})]
             names += [synth_folder_name(p, s) for p in presets for s in seeds]
-            if fit_seeds:
-                names = [fit_seed_name(n, k) for n in names for k in fit_seeds]
+            names = [r["name"] for r in with_fit_seeds([{"name": n} for n in names], fit_seeds)]
         run_json = results.parent / "bench_run.json"
         if run_json.is_file():
             run = json.loads(run_json.read_text())

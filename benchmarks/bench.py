@@ -61,6 +61,14 @@ def _csv_list(text: str) -> list[str]:
     return [x.strip() for x in text.split(",") if x.strip()]
 
 
+def _int_list(text: str, option: str) -> list[int]:
+    """Comma-separated integers of ``option``; a clear exit on anything else."""
+    try:
+        return [int(x) for x in _csv_list(text)]
+    except ValueError:
+        sys.exit(f"bench: {option} takes comma-separated integers (e.g. 0,1,2), got {text!r}")
+
+
 def write_sheet(path: Path, source: str | None, presets: list[str], seeds: list[int],
                 fit_seeds: list[int] | None = None) -> list[str]:
     """One scenes sheet for the whole bench (scene folder paths made absolute); returns the
@@ -140,8 +148,8 @@ def main(argv=None) -> int:
     ap.add_argument("--out", help="where to write bench.csv / bench.md (default: the results "
                     "folder)")
     args = ap.parse_args(argv)
-    presets, seeds = _csv_list(args.synth), [int(s) for s in _csv_list(args.seeds)]
-    fit_seeds = [int(s) for s in _csv_list(args.fit_seeds)]
+    presets, seeds = _csv_list(args.synth), _int_list(args.seeds, "--seeds")
+    fit_seeds = _int_list(args.fit_seeds, "--fit-seeds")
     work = Path(args.results).resolve()
     run = None
     if args.no_run:

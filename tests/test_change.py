@@ -3,6 +3,7 @@
 import dataclasses
 import json
 import re
+from collections import Counter
 
 import cv2
 import numpy as np
@@ -88,6 +89,22 @@ def test_change_types_and_masks_on_synthetic_scene(demo_paths):
                 found.setdefault(oid, set()).add(row["type"].iloc[0])
     for oid, typ in scene.change_types.items():
         assert typ in found.get(oid, set()), (oid, typ, found)
+    # each changed object's largest changed ID is placed on it in the world (the frames'
+    # cameras are the scene's own, so its frame): within a quarter of its box diagonal of the box,
+    # at the time it is seen
+    changed_ids = set(df.loc[df["changed"], "id"])
+    for oid in scene.changed_ids:
+        cover = Counter()
+        for k, m in ids.items():
+            v, c = np.unique(m[gt[k]["ids"] == oid], return_counts=True)
+            cover.update(dict(zip(v.tolist(), c.tolist())))
+        best = df.set_index("id").loc[max((t for t in cover if t in changed_ids), key=cover.get)]
+        obj = scene.object(oid)
+        state = "after" if best["n_t1"] > best["n_t0"] else "before"
+        lo, hi = np.asarray(scene.object_bbox(obj, state), float)
+        pos = best[["x", "y", "z"]].to_numpy(float)
+        gap = np.linalg.norm(np.maximum(0, np.maximum(lo - pos, pos - hi)))
+        assert np.isfinite(best["size"]) and gap <= 0.25 * np.linalg.norm(hi - lo), (oid, pos, lo, hi)
     f1 = []
     for (p, i), (m0, m1) in masks.items():
         g = gt[(p, "t0", i)]["changed"] | gt[(p, "t1", i)]["changed"]
@@ -186,7 +203,8 @@ def test_stage_files(demo_paths, tmp_path, monkeypatch):
     assert set(ch["type"]) <= {"added", "removed", "moved"} and len(ch) == summary["changed"]
     cand = pd.read_csv(res / "change" / "candidates.csv")
     assert list(cand.columns) == ["instance", "ids", "types", "n_t0", "n_t1", "n_confirmed",
-                                  "area", "support", "colour", "verdict"]
+                                  "area", "x", "y", "z", "size", "support", "colour", "verdict"]
+    assert {"x", "y", "z", "size"} <= set(ch.columns)
     kept = cand[cand["verdict"] != "dropped"]
     assert set(kept["instance"]) == set(ch["instance"])
     # overlays on request: one per frame, the same IDs; a later run without them removes them

@@ -632,7 +632,10 @@ def decide(stats: list[tuple[object, dict[int, dict]]], o: CompareOptions) -> pd
     at each time), n_confirmed, first, last (pose names), area (mean pixels), colour (median
     over the poses where it was confirmed of :func:`surround_colour_change`; NaN when never
     measured), n_colour (those poses), instance (the object a changed ID belongs to, see
-    :func:`_group_instances`; 0 when unchanged).
+    :func:`_group_instances`; 0 when unchanged), x, y, z (median over poses of the median world
+    point of its mask, in the frame of the cameras: where it is) and size (median over poses of
+    sqrt(mask area) * depth / focal: its extent, in the same units); x, y, z and size are NaN
+    for an ID seen only where there was no depth or camera.
     """
     acc: dict[int, dict] = defaultdict(lambda: dict(n0=0, n1=0, n=0, conf=0, poses=[],
                                                     area=[], hist=None, size=[], pos={},
@@ -679,6 +682,10 @@ def decide(stats: list[tuple[object, dict[int, dict]]], o: CompareOptions) -> pd
     df["changed"] = df["changed"].astype(bool)  # also when empty: a mask, not column labels
     _pair_moved(df, o)
     _group_instances(df)
+    world = [p if p is not None and len(p[0]) == 3 else None for p in df["_pos"]]
+    for k, c in enumerate("xyz"):
+        df[c] = [float(p[0][k]) if p is not None else np.nan for p in world]
+    df["size"] = [float(p[1]) if p is not None else np.nan for p in world]
     return df.drop(columns=["_hist", "_size", "_pos"])
 
 

@@ -120,7 +120,8 @@ def compare_paths(ids: dict[Key, np.ndarray], frames: dict[Key, dict] | None,
     (:mod:`gdiff.compare.coverage`). ``workers``: processes the poses are judged on
     (:func:`gdiff.parallel.ordered_map`; the result does not depend on it). Returns
     ({(path, i): (mask_t0, mask_t1)}, changes table: id,
-    changed, type, partner, n_t0, n_t1, n_confirmed, first, last, area, instance). The table's
+    changed, type, partner, n_t0, n_t1, n_confirmed, first, last, area, instance, x, y, z,
+    size; see :func:`gdiff.compare.change.decide`). The table's
     ``attrs["evidence3d"]`` holds the changed voxels of the 3D evidence, ``{"geometry" | "flat":
     (voxel side, keys at t0, keys at t1)}`` (see :func:`gdiff.compare.geometry.write_evidence`).
     """
@@ -231,7 +232,7 @@ def _support_3d(df: pd.DataFrame, ids: dict[Key, np.ndarray], evidence: list[Geo
 
 
 CANDIDATE_COLUMNS = ["instance", "ids", "types", "n_t0", "n_t1", "n_confirmed", "area",
-                     "support", "colour", "verdict"]
+                     "x", "y", "z", "size", "support", "colour", "verdict"]
 
 
 def _confirm_by_evidence(df: pd.DataFrame, o: CompareOptions, band: int,
@@ -256,7 +257,8 @@ def _confirm_by_evidence(df: pd.DataFrame, o: CompareOptions, band: int,
 
     Every instance judged, with its figures and verdict (``kept: 3D``, ``kept: colour`` or
     ``dropped``), goes to ``df.attrs["candidates"]`` (columns :data:`CANDIDATE_COLUMNS`;
-    ``n_t0``, ``n_t1``, ``n_confirmed`` and ``area`` are those of its largest member).
+    ``n_t0``, ``n_t1``, ``n_confirmed``, ``area``, ``x``, ``y``, ``z`` and ``size`` are those
+    of its largest member).
     """
     ch = df.index[df["changed"]]
     df.attrs["candidates"] = pd.DataFrame(columns=CANDIDATE_COLUMNS)
@@ -282,7 +284,9 @@ def _confirm_by_evidence(df: pd.DataFrame, o: CompareOptions, band: int,
         rows.append(dict(instance=int(v), ids=" ".join(str(int(i)) for i in members["id"]),
                          types=" ".join(sorted(set(members["type"]))), n_t0=int(head["n_t0"]),
                          n_t1=int(head["n_t1"]), n_confirmed=int(head["n_confirmed"]),
-                         area=float(head["area"]), support=support, colour=col,
+                         area=float(head["area"]), **{c: float(head[c]) for c in
+                                                      ("x", "y", "z", "size")},
+                         support=support, colour=col,
                          verdict=verdict))
     df.attrs["candidates"] = pd.DataFrame(rows, columns=CANDIDATE_COLUMNS)
     n = len(np.unique(inst))
@@ -344,7 +348,8 @@ def compare(instances_dir, poses_json, out_dir, options: CompareOptions | None =
     for the depth evidence) and the key frames of ``poses_json`` (the training cameras: only
     pixels a photo of each time saw are compared, :mod:`gdiff.compare.coverage`); writes ``out_dir/<path>/<t0|t1|union>/NNNNN.png``,
     ``out_dir/changes.csv`` (id, type, partner, first/last pose, area, instance: the object a
-    changed ID is a piece of, ...) and last
+    changed ID is a piece of, x, y, z, size: where it is in the cameras' world frame, ...) and
+    last
     ``out_dir/keyframes.csv`` (path, frame, image, set, time, mask_t0, mask_t1, mask_union;
     mask paths relative to the parent of ``out_dir``, i.e. results/<scene>/). ``workers``:
     processes the poses are judged on (the files do not depend on it).

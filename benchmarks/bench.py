@@ -33,7 +33,11 @@ box recall and the far-from-box fraction where a scene has boxes, means over the
 preset, then per scene the wall / CPU seconds and peak MB per rule and in total, the size on
 disk and the fit's PSNR) and writes it as ``bench.csv`` and ``bench.md`` into ``--out`` (default:
 the results folder), with ``bench_run.json`` (command, wall and CPU time of the whole run) after
-a run. It prints figures and never judges them.
+a run. For scenes whose folder lists its objects (``meta.json`` with boxes, and
+``gt_cameras.json``: the shared test scenes, ``gdiff synth``) it also prints what the compare
+stage made of each changed object (kept, dropped under its thresholds, or not judged) and the
+false changes it kept (:func:`gdiff.bench.compare_objects`), and writes them as
+``compare_objects.csv``. It prints figures and never judges them.
 """
 
 from __future__ import annotations
@@ -52,7 +56,8 @@ sys.path.insert(0, str(ROOT))
 
 import pandas as pd  # noqa: E402
 
-from gdiff.bench import format_table, read_results, with_fit_seeds  # noqa: E402
+from gdiff.bench import (format_compare_objects, format_table, read_compare_objects,  # noqa: E402
+                         read_results, with_fit_seeds)
 from gdiff.io import atomic_path, write_csv, write_json  # noqa: E402
 from gdiff.scene import discover_scenes, synth_folder_name  # noqa: E402
 
@@ -185,6 +190,12 @@ def main(argv=None) -> int:
                              + ("\n" + footer if footer else ""))
     print(text + footer, end="")
     print(f"bench: table written to {out / 'bench.csv'} and {out / 'bench.md'}")
+    objects = read_compare_objects(results, names)
+    if len(objects):
+        write_csv(out / "compare_objects.csv", objects)
+        print("compare stage, per object of the scenes' ground truth (meta.json):\n"
+              + format_compare_objects(objects), end="")
+        print(f"bench: objects written to {out / 'compare_objects.csv'}")
     return 0 if run is None else int(run["returncode"] != 0)
 
 

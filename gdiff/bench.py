@@ -42,6 +42,7 @@ from typing import Iterable, Mapping
 import numpy as np
 import pandas as pd
 
+from .io import read_json
 from .summary import collect_metrics, collect_timings, find_benchmarks, summarize_metrics
 
 QUALITY = {"P_pooled": "P", "R_pooled": "R", "F1_pooled": "F1", "IoU_pooled": "IoU",
@@ -340,3 +341,139 @@ def read_results(results: str | Path, scenes: Iterable[str] | None = None,
     timings = scene_timings(results, scenes)
     return build_table(summary, timings, info, synth_groups(scenes, presets, fit_seeds),
                        fit_seed_groups(scenes, fit_seeds))
+
+
+# ------------------------------------------------------------------------------------------
+# the compare stage judged per object, where a scene lists its objects
+# ------------------------------------------------------------------------------------------
+
+OBJECT_COLUMNS = ["object", "changed", "verdict", "instances", "support", "colour"]
+
+
+def _scene_objects(scene_dir: Path) -> list[tuple[str, bool, int, np.ndarray]] | None:
+    """(name, changed, time, box [2, 3]) per object and time it is present, from the scene's
+    ``meta.json`` (``objects``: ``name``, ``changed``, ``before`` / ``after`` with ``present``
+    and ``bbox_world``, as the shared test scenes and ``gdiff synth`` write it); None without."""
+    meta = scene_dir / "meta.json"
+    if not meta.is_file() or not (scene_dir / "gt_cameras.json").is_file():
+        return None
+    objects = read_json(meta).get("objects")
+    if not objects:
+        return None
+    out = []
+    for o in objects:
+        for time, state in enumerate(("before", "after")):
+            s = o.get(state) or {}
+            if s.get("present") and s.get("bbox_world") is not None:
+                out.append((str(o["name"]), bool(o.get("changed")), time,
+                            np.asarray(s["bbox_world"], float)))
+    return out
+
+
+def compare_objects(scene_results: str | Path) -> pd.DataFrame | None:
+    """The compare stage's verdicts per object of the scene's ground truth, or None when the
+    scene folder (``input/manifest.json``'s ``scene``) does not list its objects (``meta.json``
+    with ``objects`` and boxes, and ``gt_cameras.json``) or compare has not run.
+
+    The registered cameras (``poses/cameras.json``) are aligned to ``gt_cameras.json`` (a
+    similarity on the centres of the images both hold, :func:`gdiff.align.umeyama_sim3`) and
+    every object that ``change/candidates.csv`` judged is put, by its world position (``x, y,
+    z``), on the object whose box at the time it was seen (t0 for ``removed``, t1 for
+    ``added``, either for ``moved``) is nearest, when it lies within a quarter of that box's
+    diagonal of it. One row per changed object of the scene: ``verdict`` ``kept`` (a kept
+    candidate lies on it), ``dropped`` (only dropped ones), ``not judged`` (none: the ID
+    comparison did not find it, or only the 3D evidence did), with the candidates' instances,
+    ``support`` and ``colour`` (of its largest one); then one row per kept candidate on no
+    changed object (``changed`` False, ``object`` the unchanged object it lies on or empty):
+    verdict ``kept`` too, a false change."""
+    from .align import umeyama_sim3
+    from .sfm import read_cameras_file
+
+    res = Path(scene_results)
+    cand_csv, manifest = res / "change" / "candidates.csv", res / "input" / "manifest.json"
+    if not cand_csv.is_file() or not manifest.is_file():
+        return None
+    scene_dir = Path(read_json(manifest)["scene"])
+    boxes = _scene_objects(scene_dir)
+    if boxes is None:
+        return None
+    gt = {c.image: c.center for c in read_cameras_file(scene_dir / "gt_cameras.json")}
+    reg = [(c.center, gt[c.image]) for c in read_cameras_file(res / "poses" / "cameras.json")
+           if c.image in gt]
+    if len(reg) < 3:
+        return None
+    s, R, t = umeyama_sim3(np.stack([a for a, _ in reg]), np.stack([b for _, b in reg]))
+    cand = pd.read_csv(cand_csv)
+    on = []
+    for _, c in cand.iterrows():
+        x = np.array([c.get("x", np.nan), c.get("y", np.nan), c.get("z", np.nan)], float)
+        types = str(c["types"]).split()
+        times = {0} if types == ["removed"] else {1} if types == ["added"] else {0, 1}
+        best = (np.inf, "", False)
+        if np.isfinite(x).all():
+            p = s * R @ x + t
+            for name, changed, time, (lo, hi) in boxes:
+                d = float(np.linalg.norm(np.maximum(0, np.maximum(lo - p, p - hi))))
+                if time in times and d <= 0.25 * np.linalg.norm(hi - lo) and d < best[0]:
+                    best = (d, name, changed)
+        on.append(best[1:])
+    cand["object"] = [o for o, _ in on]
+    cand["on_changed"] = [c for _, c in on]
+    cand["kept"] = cand["verdict"].astype(str).str.startswith("kept")
+    rows = []
+    for name in dict.fromkeys(n for n, changed, _, _ in boxes if changed):
+        mine = cand[cand["object"] == name].sort_values("area", ascending=False)
+        verdict = ("kept" if mine["kept"].any() else "dropped" if len(mine) else "not judged")
+        head = mine[mine["kept"]].iloc[0] if mine["kept"].any() else (
+            mine.iloc[0] if len(mine) else None)
+        rows.append(dict(object=name, changed=True, verdict=verdict,
+                         instances=" ".join(str(int(i)) for i in mine["instance"]),
+                         support=np.nan if head is None else float(head["support"]),
+                         colour=np.nan if head is None else float(head["colour"])))
+    for _, c in cand[cand["kept"] & ~cand["on_changed"]].iterrows():
+        rows.append(dict(object=c["object"], changed=False, verdict="kept",
+                         instances=str(int(c["instance"])), support=float(c["support"]),
+                         colour=float(c["colour"])))
+    return pd.DataFrame(rows, columns=OBJECT_COLUMNS)
+
+
+def compare_object_counts(objects: pd.DataFrame) -> dict:
+    """Counts of a :func:`compare_objects` table: changed objects, how many were kept,
+    dropped and not judged, and how many false changes were kept."""
+    ch = objects[objects["changed"].astype(bool)]
+    return {"changed": len(ch), "kept": int((ch["verdict"] == "kept").sum()),
+            "dropped": int((ch["verdict"] == "dropped").sum()),
+            "not_judged": int((ch["verdict"] == "not judged").sum()),
+            "false_kept": int((~objects["changed"].astype(bool)).sum())}
+
+
+def read_compare_objects(results: str | Path, scenes: Iterable[str] | None = None
+                         ) -> pd.DataFrame:
+    """:func:`compare_objects` of every scene of a results folder (or ``scenes``) that lists its
+    objects, one table with a first column ``scene``; empty when none does."""
+    results = Path(results)
+    scenes = list(scenes) if scenes is not None else scene_folders(results)
+    parts = []
+    for s in scenes:
+        t = compare_objects(results / s)
+        if t is not None:
+            parts.append(t.assign(scene=s))
+    if not parts:
+        return pd.DataFrame(columns=["scene"] + OBJECT_COLUMNS)
+    return pd.concat(parts, ignore_index=True)[["scene"] + OBJECT_COLUMNS]
+
+
+def format_compare_objects(objects: pd.DataFrame) -> str:
+    """One line per scene of a :func:`read_compare_objects` table: its changed objects kept,
+    dropped and not judged by the compare stage (with the dropped ones' support and colour, the
+    figures their verdict turned on), and the false changes it kept."""
+    lines = []
+    for scene, t in objects.groupby("scene", sort=False):
+        n = compare_object_counts(t)
+        dropped = t[t["changed"].astype(bool) & (t["verdict"] == "dropped")]
+        why = "".join(f"; dropped {r.object} (support {r.support:.2f}, colour {r.colour:.2f})"
+                      for r in dropped.itertuples())
+        lines.append(f"{scene}: {n['kept']} of {n['changed']} changed objects kept, "
+                     f"{n['dropped']} dropped, {n['not_judged']} not judged; "
+                     f"{n['false_kept']} false changes kept{why}")
+    return "\n".join(lines) + ("\n" if lines else "")

@@ -1,7 +1,9 @@
 """The bench table (gdiff.bench) from a made-up results folder."""
 
+import json
 import math
 
+import numpy as np
 import pandas as pd
 import pytest
 
@@ -134,3 +136,65 @@ def test_fit_seed_runs_sheet_and_means(tmp_path):
     assert mean["R"] == pytest.approx(0.5) and mean["psnr_t0"] == pytest.approx(21.0)
     assert mean["wall_fit"] == pytest.approx(110)
     assert t.loc["demo (mean of 2)", "R"] == pytest.approx(0.5)
+
+
+def test_compare_objects_puts_each_judged_object_on_the_scenes_objects(synth_tiny_dir, tmp_path):
+    """The compare stage's candidates, placed by their world positions in the registered frame
+    (a similarity away from the scene's own), land on the scene's objects: the removed one
+    found, the added one dropped, a static one kept by mistake, one on no object at all."""
+    from gdiff.bench import (compare_object_counts, compare_objects, format_compare_objects,
+                             read_compare_objects)
+    from gdiff.cameras import cameras_to_json
+    from gdiff.sfm import read_cameras_file
+
+    meta = json.loads((synth_tiny_dir / "meta.json").read_text())
+    box = {o["name"]: {st: np.asarray(o[st]["bbox_world"]) for st in ("before", "after")
+                       if o[st]["present"]} for o in meta["objects"]}
+    changed = {o["name"]: o["changed"] for o in meta["objects"]}
+    removed = next(n for n, b in box.items() if changed[n] and "after" not in b)
+    added = next(n for n, b in box.items() if changed[n] and "before" not in b)
+    static = next(n for n in box if not changed[n])
+    s, c, sn = 2.5, np.cos(0.7), np.sin(0.7)
+    R, t = np.array([[c, -sn, 0], [sn, c, 0], [0, 0, 1]]), np.array([1.0, -2.0, 0.5])
+
+    def to_registered(x):  # x_gt = s R x_reg + t
+        return R.T @ (np.asarray(x) - t) / s
+
+    cams = read_cameras_file(synth_tiny_dir / "gt_cameras.json")
+    for cam in cams:
+        c2w = cam.c2w.copy()
+        c2w[:3, :3] = R.T @ c2w[:3, :3]
+        c2w[:3, 3] = to_registered(c2w[:3, 3])
+        cam.c2w = c2w
+    res = tmp_path / "results" / "tiny"
+    (res / "poses").mkdir(parents=True)
+    (res / "poses" / "cameras.json").write_text(json.dumps(cameras_to_json(cams)))
+    (res / "input").mkdir()
+    (res / "input" / "manifest.json").write_text(json.dumps({"scene": str(synth_tiny_dir)}))
+    rows = []
+    for inst, (name, state, types, verdict) in enumerate(
+            [(removed, "before", "removed", "kept: 3D"), (added, "after", "added", "dropped"),
+             (static, "before", "removed", "kept: colour")], start=1):
+        x, y, z = to_registered(box[name][state].mean(0))
+        rows.append(dict(instance=inst, ids=str(inst), types=types, n_t0=3, n_t1=0,
+                         n_confirmed=3, area=100.0, x=x, y=y, z=z, size=0.1, support=0.1 * inst,
+                         colour=0.3, verdict=verdict))
+    x, y, z = to_registered([50.0, 50.0, 50.0])  # far from every object
+    rows.append(dict(rows[0], instance=9, ids="9", x=x, y=y, z=z))
+    (res / "change").mkdir()
+    pd.DataFrame(rows).to_csv(res / "change" / "candidates.csv", index=False)
+    objects = compare_objects(res).set_index("object")
+    assert objects.loc[removed, "verdict"] == "kept" and objects.loc[removed, "instances"] == "1"
+    assert objects.loc[added, "verdict"] == "dropped"
+    assert objects.loc[added, "support"] == pytest.approx(0.2)
+    assert not objects.loc[static, "changed"] and objects.loc[static, "instances"] == "3"
+    assert list(objects.loc[""].to_frame().T["instances"]) == ["9"]
+    counts = compare_object_counts(objects.reset_index())
+    assert counts == {"changed": len(meta["changed_objects"]), "kept": 1, "dropped": 1,
+                      "not_judged": len(meta["changed_objects"]) - 2, "false_kept": 2}
+    table = read_compare_objects(tmp_path / "results")
+    assert list(table["scene"].unique()) == ["tiny"]
+    assert f"dropped {added} (support 0.20" in format_compare_objects(table)
+    # a scene folder that does not list its objects: nothing to say
+    (res / "input" / "manifest.json").write_text(json.dumps({"scene": str(tmp_path)}))
+    assert compare_objects(res) is None and len(read_compare_objects(tmp_path / "results")) == 0

@@ -385,7 +385,8 @@ def compare_objects(scene_results: str | Path) -> pd.DataFrame | None:
     comparison did not find it, or only the 3D evidence did), with the candidates' instances,
     ``support`` and ``colour`` (of its largest one); then one row per kept candidate on no
     changed object (``changed`` False, ``object`` the unchanged object it lies on or empty):
-    verdict ``kept`` too, a false change."""
+    verdict ``kept`` too, a false change. None also for a ``candidates.csv`` without positions
+    (written by an older version)."""
     from .align import umeyama_sim3
     from .sfm import read_cameras_file
 
@@ -404,6 +405,8 @@ def compare_objects(scene_results: str | Path) -> pd.DataFrame | None:
         return None
     s, R, t = umeyama_sim3(np.stack([a for a, _ in reg]), np.stack([b for _, b in reg]))
     cand = pd.read_csv(cand_csv)
+    if not {"x", "y", "z"} <= set(cand.columns):
+        return None  # written before compare recorded positions
     on = []
     for _, c in cand.iterrows():
         x = np.array([c.get("x", np.nan), c.get("y", np.nan), c.get("z", np.nan)], float)

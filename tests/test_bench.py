@@ -195,6 +195,12 @@ def test_compare_objects_puts_each_judged_object_on_the_scenes_objects(synth_tin
     table = read_compare_objects(tmp_path / "results")
     assert list(table["scene"].unique()) == ["tiny"]
     assert f"dropped {added} (support 0.20" in format_compare_objects(table)
-    # a scene folder that does not list its objects: nothing to say
+    # candidates without positions (an older compare) or a scene folder that does not list
+    # its objects: nothing to say
+    pd.DataFrame(rows).drop(columns=["x", "y", "z"]).to_csv(res / "change" / "old.csv")
+    (res / "change" / "candidates.csv").rename(res / "change" / "new.csv")
+    (res / "change" / "old.csv").rename(res / "change" / "candidates.csv")
+    assert compare_objects(res) is None
+    (res / "change" / "new.csv").rename(res / "change" / "candidates.csv")
     (res / "input" / "manifest.json").write_text(json.dumps({"scene": str(tmp_path)}))
     assert compare_objects(res) is None and len(read_compare_objects(tmp_path / "results")) == 0

@@ -395,6 +395,8 @@ def compare_objects(scene_results: str | Path) -> pd.DataFrame | None:
     if not cand_csv.is_file() or not manifest.is_file():
         return None
     scene_dir = Path(read_json(manifest)["scene"])
+    if not scene_dir.is_absolute():  # relative to the workflow's directory, above results/
+        scene_dir = res.parent.parent / scene_dir
     boxes = _scene_objects(scene_dir)
     if boxes is None:
         return None
@@ -409,7 +411,7 @@ def compare_objects(scene_results: str | Path) -> pd.DataFrame | None:
         return None  # written before compare recorded positions
     on = []
     for _, c in cand.iterrows():
-        x = np.array([c.get("x", np.nan), c.get("y", np.nan), c.get("z", np.nan)], float)
+        x = np.array([c["x"], c["y"], c["z"]], float)
         types = str(c["types"]).split()
         times = {0} if types == ["removed"] else {1} if types == ["added"] else {0, 1}
         best = (np.inf, "", False)

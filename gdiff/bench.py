@@ -373,26 +373,28 @@ def _scene_objects(scene_dir: Path) -> list[tuple[str, bool, int, np.ndarray]] |
 def compare_objects(scene_results: str | Path) -> pd.DataFrame | None:
     """The compare stage's verdicts per object of the scene's ground truth, or None when the
     scene folder (``input/manifest.json``'s ``scene``) does not list its objects (``meta.json``
-    with ``objects`` and boxes, and ``gt_cameras.json``) or compare has not run.
+    with ``objects`` and boxes, and ``gt_cameras.json``), compare has not run, or its files
+    carry no positions (written by an older version).
 
     The registered cameras (``poses/cameras.json``) are aligned to ``gt_cameras.json`` (a
-    similarity on the centres of the images both hold, :func:`gdiff.align.umeyama_sim3`) and
-    every object that ``change/candidates.csv`` judged is put, by its world position (``x, y,
-    z``), on the object whose box at the time it was seen (t0 for ``removed``, t1 for
+    similarity on the centres of the images both hold, :func:`gdiff.align.umeyama_sim3`).
+    Every changed ID the stage kept (``change/changes.csv``) and every object it judged and
+    dropped (``change/candidates.csv``, placed by its largest ID) is put, by its world position
+    (``x, y, z``), on the object whose box at the time it was seen (t0 for ``removed``, t1 for
     ``added``, either for ``moved``) is nearest, when it lies within a quarter of that box's
-    diagonal of it. One row per changed object of the scene: ``verdict`` ``kept`` (a kept
-    candidate lies on it), ``dropped`` (only dropped ones), ``not judged`` (none: the ID
-    comparison did not find it, or only the 3D evidence did), with the candidates' instances,
-    ``support`` and ``colour`` (of its largest one); then one row per kept candidate on no
-    changed object (``changed`` False, ``object`` the unchanged object it lies on or empty):
-    verdict ``kept`` too, a false change. None also for a ``candidates.csv`` without positions
-    (written by an older version)."""
+    diagonal of it. One row per changed object of the scene: ``verdict`` ``kept`` (a kept ID
+    lies on it), ``dropped`` (only dropped ones), ``not judged`` (none: the ID comparison did
+    not find it, or only the 3D evidence did), with the instances on it and the ``support``
+    and ``colour`` of the largest; then one row per kept instance none of whose IDs lies on a
+    changed object (``changed`` False, ``object`` the unchanged object its largest ID lies
+    on, or empty): verdict ``kept`` too, a false change."""
     from .align import umeyama_sim3
     from .sfm import read_cameras_file
 
     res = Path(scene_results)
-    cand_csv, manifest = res / "change" / "candidates.csv", res / "input" / "manifest.json"
-    if not cand_csv.is_file() or not manifest.is_file():
+    change, manifest = res / "change", res / "input" / "manifest.json"
+    if not (change / "candidates.csv").is_file() or not (change / "changes.csv").is_file() \
+            or not manifest.is_file():
         return None
     scene_dir = Path(read_json(manifest)["scene"])
     if not scene_dir.is_absolute():  # relative to the workflow's directory, above results/
@@ -400,45 +402,54 @@ def compare_objects(scene_results: str | Path) -> pd.DataFrame | None:
     boxes = _scene_objects(scene_dir)
     if boxes is None:
         return None
+    kept = pd.read_csv(change / "changes.csv")
+    cand = pd.read_csv(change / "candidates.csv")
+    if not ({"x", "y", "z"} <= set(kept.columns) and {"x", "y", "z"} <= set(cand.columns)):
+        return None  # written before compare recorded positions
     gt = {c.image: c.center for c in read_cameras_file(scene_dir / "gt_cameras.json")}
     reg = [(c.center, gt[c.image]) for c in read_cameras_file(res / "poses" / "cameras.json")
            if c.image in gt]
     if len(reg) < 3:
         return None
     s, R, t = umeyama_sim3(np.stack([a for a, _ in reg]), np.stack([b for _, b in reg]))
-    cand = pd.read_csv(cand_csv)
-    if not {"x", "y", "z"} <= set(cand.columns):
-        return None  # written before compare recorded positions
-    on = []
-    for _, c in cand.iterrows():
-        x = np.array([c["x"], c["y"], c["z"]], float)
-        types = str(c["types"]).split()
-        times = {0} if types == ["removed"] else {1} if types == ["added"] else {0, 1}
-        best = (np.inf, "", False)
-        if np.isfinite(x).all():
-            p = s * R @ x + t
-            for name, changed, time, (lo, hi) in boxes:
-                d = float(np.linalg.norm(np.maximum(0, np.maximum(lo - p, p - hi))))
-                if time in times and d <= 0.25 * np.linalg.norm(hi - lo) and d < best[0]:
-                    best = (d, name, changed)
-        on.append(best[1:])
-    cand["object"] = [o for o, _ in on]
-    cand["on_changed"] = [c for _, c in on]
-    cand["kept"] = cand["verdict"].astype(str).str.startswith("kept")
+
+    def place(df: pd.DataFrame, type_column: str) -> None:
+        on = []
+        for _, c in df.iterrows():
+            x = np.array([c["x"], c["y"], c["z"]], float)
+            types = str(c[type_column]).split()
+            times = {0} if types == ["removed"] else {1} if types == ["added"] else {0, 1}
+            best = (np.inf, "", False)
+            if np.isfinite(x).all():
+                p = s * R @ x + t
+                for name, changed, time, (lo, hi) in boxes:
+                    d = float(np.linalg.norm(np.maximum(0, np.maximum(lo - p, p - hi))))
+                    if time in times and d <= 0.25 * np.linalg.norm(hi - lo) and d < best[0]:
+                        best = (d, name, changed)
+            on.append(best[1:])
+        df["object"] = [o for o, _ in on]
+        df["on_changed"] = [c for _, c in on]
+
+    place(kept, "type")
+    dropped = cand[cand["verdict"] == "dropped"].copy()
+    place(dropped, "types")
     rows = []
     for name in dict.fromkeys(n for n, changed, _, _ in boxes if changed):
-        mine = cand[cand["object"] == name].sort_values("area", ascending=False)
-        verdict = ("kept" if mine["kept"].any() else "dropped" if len(mine) else "not judged")
-        head = mine[mine["kept"]].iloc[0] if mine["kept"].any() else (
-            mine.iloc[0] if len(mine) else None)
+        k = kept[kept["object"] == name].sort_values("area", ascending=False)
+        d = dropped[dropped["object"] == name].sort_values("area", ascending=False)
+        mine = k if len(k) else d
+        verdict = "kept" if len(k) else "dropped" if len(d) else "not judged"
         rows.append(dict(object=name, changed=True, verdict=verdict,
-                         instances=" ".join(str(int(i)) for i in mine["instance"]),
-                         support=np.nan if head is None else float(head["support"]),
-                         colour=np.nan if head is None else float(head["colour"])))
-    for _, c in cand[cand["kept"] & ~cand["on_changed"]].iterrows():
-        rows.append(dict(object=c["object"], changed=False, verdict="kept",
-                         instances=str(int(c["instance"])), support=float(c["support"]),
-                         colour=float(c["colour"])))
+                         instances=" ".join(str(int(i)) for i in dict.fromkeys(mine["instance"])),
+                         support=float(mine["support"].iloc[0]) if len(mine) else np.nan,
+                         colour=float(mine["colour"].iloc[0]) if len(mine) else np.nan))
+    for inst, k in kept.groupby("instance", sort=True):
+        if k["on_changed"].any():
+            continue
+        head = k.sort_values("area", ascending=False).iloc[0]
+        rows.append(dict(object=head["object"], changed=False, verdict="kept",
+                         instances=str(int(inst)), support=float(head["support"]),
+                         colour=float(head["colour"])))
     return pd.DataFrame(rows, columns=OBJECT_COLUMNS)
 
 

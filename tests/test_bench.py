@@ -139,9 +139,10 @@ def test_fit_seed_runs_sheet_and_means(tmp_path):
 
 
 def test_compare_objects_puts_each_judged_object_on_the_scenes_objects(synth_tiny_dir, tmp_path):
-    """The compare stage's candidates, placed by their world positions in the registered frame
-    (a similarity away from the scene's own), land on the scene's objects: the removed one
-    found, the added one dropped, a static one kept by mistake, one on no object at all."""
+    """The compare stage's kept IDs and dropped candidates, placed by their world positions in
+    the registered frame (a similarity away from the scene's own), land on the scene's objects:
+    the removed one found, the added one dropped, a static one kept by mistake, one on no
+    object at all."""
     from gdiff.bench import (compare_object_counts, compare_objects, format_compare_objects,
                              read_compare_objects)
     from gdiff.cameras import cameras_to_json
@@ -183,6 +184,10 @@ def test_compare_objects_puts_each_judged_object_on_the_scenes_objects(synth_tin
     rows.append(dict(rows[0], instance=9, ids="9", x=x, y=y, z=z))
     (res / "change").mkdir()
     pd.DataFrame(rows).to_csv(res / "change" / "candidates.csv", index=False)
+    kept = pd.DataFrame([dict(id=r["instance"], type=r["types"], **{k: r[k] for k in (
+        "n_t0", "n_t1", "area", "instance", "x", "y", "z", "size", "support", "colour")})
+        for r in rows if r["verdict"] != "dropped"])
+    kept.to_csv(res / "change" / "changes.csv", index=False)
     objects = compare_objects(res).set_index("object")
     assert objects.loc[removed, "verdict"] == "kept" and objects.loc[removed, "instances"] == "1"
     assert objects.loc[added, "verdict"] == "dropped"
@@ -197,10 +202,8 @@ def test_compare_objects_puts_each_judged_object_on_the_scenes_objects(synth_tin
     assert f"dropped {added} (support 0.20" in format_compare_objects(table)
     # candidates without positions (an older compare) or a scene folder that does not list
     # its objects: nothing to say
-    pd.DataFrame(rows).drop(columns=["x", "y", "z"]).to_csv(res / "change" / "old.csv")
-    (res / "change" / "candidates.csv").rename(res / "change" / "new.csv")
-    (res / "change" / "old.csv").rename(res / "change" / "candidates.csv")
+    kept.drop(columns=["x", "y", "z"]).to_csv(res / "change" / "changes.csv", index=False)
     assert compare_objects(res) is None
-    (res / "change" / "new.csv").rename(res / "change" / "candidates.csv")
+    kept.to_csv(res / "change" / "changes.csv", index=False)
     (res / "input" / "manifest.json").write_text(json.dumps({"scene": str(tmp_path)}))
     assert compare_objects(res) is None and len(read_compare_objects(tmp_path / "results")) == 0

@@ -376,8 +376,8 @@ def compare_objects(scene_results: str | Path) -> pd.DataFrame | None:
     with ``objects`` and boxes, and ``gt_cameras.json``), compare has not run, or its files
     carry no positions (written by an older version).
 
-    The registered cameras (``poses/cameras.json``) are aligned to ``gt_cameras.json`` (a
-    similarity on the centres of the images both hold, :func:`gdiff.align.umeyama_sim3`).
+    The registered cameras (``poses/cameras.json``) are aligned to ``gt_cameras.json`` (the
+    similarity of :func:`gdiff.align.pose_errors`, on the centres of the images both hold).
     Every changed ID the stage kept (``change/changes.csv``) and every object it judged and
     dropped (``change/candidates.csv``, placed by its largest ID) is put, by its world position
     (``x, y, z``), on the object whose box at the time it was seen (t0 for ``removed``, t1 for
@@ -388,7 +388,7 @@ def compare_objects(scene_results: str | Path) -> pd.DataFrame | None:
     and ``colour`` of the largest; then one row per kept instance none of whose IDs lies on a
     changed object (``changed`` False, ``object`` the unchanged object its largest ID lies
     on, or empty): verdict ``kept`` too, a false change."""
-    from .align import umeyama_sim3
+    from .align import pose_errors
     from .sfm import read_cameras_file
 
     res = Path(scene_results)
@@ -406,12 +406,12 @@ def compare_objects(scene_results: str | Path) -> pd.DataFrame | None:
     cand = pd.read_csv(change / "candidates.csv")
     if not ({"x", "y", "z"} <= set(kept.columns) and {"x", "y", "z"} <= set(cand.columns)):
         return None  # written before compare recorded positions
-    gt = {c.image: c.center for c in read_cameras_file(scene_dir / "gt_cameras.json")}
-    reg = [(c.center, gt[c.image]) for c in read_cameras_file(res / "poses" / "cameras.json")
-           if c.image in gt]
-    if len(reg) < 3:
+    try:
+        sim = pose_errors(read_cameras_file(res / "poses" / "cameras.json"),
+                          read_cameras_file(scene_dir / "gt_cameras.json")).attrs
+    except ValueError:  # fewer than 3 images in common: no alignment
         return None
-    s, R, t = umeyama_sim3(np.stack([a for a, _ in reg]), np.stack([b for _, b in reg]))
+    s, R, t = sim["scale"], sim["R"], sim["t"]
 
     def place(df: pd.DataFrame, type_column: str) -> None:
         on = []

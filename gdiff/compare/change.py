@@ -310,7 +310,8 @@ def pose_stats(ids0: np.ndarray, ids1: np.ndarray, o: CompareOptions,
                depth0: np.ndarray | None = None, depth1: np.ndarray | None = None,
                focal: float | None = None, camera=None, observed0: np.ndarray | None = None,
                observed1: np.ndarray | None = None, seen0: np.ndarray | None = None,
-               seen1: np.ndarray | None = None) -> dict[int, dict]:
+               seen1: np.ndarray | None = None,
+               appearance: np.ndarray | None = None) -> dict[int, dict]:
     """Compare the ID maps int [H, W] of one pose at t0 and t1.
 
     Returns, per ID visible at this pose: ``area0``, ``area1`` (pixels), ``candidate`` (absent
@@ -341,7 +342,8 @@ def pose_stats(ids0: np.ndarray, ids1: np.ndarray, o: CompareOptions,
     only on the observed pixels: there alone it decides whether a region is hidden at the
     other time, changed depth, or is the same surface. A region only seen (a sparse capture:
     an object one photo shows, whose depth the fit could put anywhere along that photo's rays)
-    is judged by its appearance.
+    is judged by its appearance. ``appearance`` (bool [H, W], optional): the pose's
+    :func:`appearance_change` of ``rgb0`` and ``rgb1`` when the caller has it already.
 
     Texture-only confirmation also needs different colours (Bhattacharyya coefficient of the
     region's chromaticity histograms < ``texture_color_similarity``) and, with depth, is not
@@ -359,6 +361,8 @@ def pose_stats(ids0: np.ndarray, ids1: np.ndarray, o: CompareOptions,
     has_depth = depth0 is not None and depth1 is not None
     has_rgb = rgb0 is not None and rgb1 is not None
     cache: dict[str, np.ndarray] = {}
+    if appearance is not None:
+        cache["chroma"] = np.asarray(appearance, bool)
 
     def raw_depth_change():
         if "raw" not in cache:

@@ -82,18 +82,20 @@ class _JudgePose:
             both = surface(f0["depth"], f0.get("alpha")) & surface(f1["depth"], f1.get("alpha"))
             judged = np.array([int(both.sum()), int((shown[0] & shown[1]).sum()),
                                int((obs[0] & obs[1]).sum())], np.int64)
-        stats = (f"{p}/{i:05d}", pose_stats(
-            self.ids[(p, "t0", i)], self.ids[(p, "t1", i)], o, f0.get("rgb"), f1.get("rgb"),
-            f0.get("depth"), f1.get("depth"), focal=cam.fx if cam is not None else None,
-            camera=cam, observed0=obs[0], observed1=obs[1], seen0=shown[0], seen1=shown[1]))
         z0, z1 = f0.get("depth"), f1.get("depth")
         have_depth = cam is not None and z0 is not None and z1 is not None
+        evidence = have_depth and (self.geo_stride is not None or self.flat_stride is not None)
+        differ = None  # the pose's appearance change: the evidence needs it, the IDs may
+        if evidence and f0.get("rgb") is not None and f1.get("rgb") is not None:
+            differ = appearance_change(f0["rgb"], f1["rgb"], o.chroma_tol, o.ncc_min)
+        stats = (f"{p}/{i:05d}", pose_stats(
+            self.ids[(p, "t0", i)], self.ids[(p, "t1", i)], o, f0.get("rgb"), f1.get("rgb"),
+            z0, z1, focal=cam.fx if cam is not None else None,
+            camera=cam, observed0=obs[0], observed1=obs[1], seen0=shown[0], seen1=shown[1],
+            appearance=differ))
         g_rec = f_rec = None
-        if have_depth and (self.geo_stride is not None or self.flat_stride is not None):
+        if evidence:
             known = obs[0] & obs[1] if obs[0] is not None and obs[1] is not None else None
-            differ = None
-            if f0.get("rgb") is not None and f1.get("rgb") is not None:
-                differ = appearance_change(f0["rgb"], f1["rgb"], o.chroma_tol, o.ncc_min)
             points = (world_points(z0, cam), world_points(z1, cam))
             if self.geo_stride is not None:
                 g_rec = pose_record(z0, z1, cam, *pose_flags(z0, z1, o.depth_change_rel,

@@ -13,7 +13,7 @@ import logging
 import os
 import shutil
 from collections import OrderedDict
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
 from pathlib import Path
 
 import numpy as np
@@ -42,10 +42,11 @@ class _Chain(Sequence):
 
     def __init__(self, order: list[Key], get, segmenter: Segmenter, keep: int,
                  key_poses: dict[tuple[str, int], int] | None = None,
-                 labels: dict[int, np.ndarray] | None = None):
+                 ahead: Iterator[np.ndarray] | None = None):
         self.order, self.get, self.segmenter, self.keep = order, get, segmenter, max(2, keep)
         self.key_poses = key_poses or {}
-        self.labels: dict[int, np.ndarray] = dict(labels or {})  # segmented ahead, if given
+        self.labels: dict[int, np.ndarray] = {}
+        self.ahead = ahead  # labels of the frames in chain order, segmented elsewhere
         self.cache: OrderedDict[int, TrackFrame] = OrderedDict()
 
     def __len__(self):
@@ -60,6 +61,9 @@ class _Chain(Sequence):
         key = self.order[k]
         f = _frame(self.get, key)
         cam = f.get("camera")
+        if self.ahead is not None:  # taken as they come, up to this frame
+            while k not in self.labels:
+                self.labels[len(self.labels)] = narrow_ids(next(self.ahead))
         if k not in self.labels:
             self.labels[k] = narrow_ids(_segment_frame(self.segmenter, f))
         tf = TrackFrame(labels=self.labels[k], rgb=f["rgb"], depth=f.get("depth"), camera=cam,
@@ -117,9 +121,10 @@ def track_paths(frames, segmenter: Segmenter, track_options: TrackOptions | None
     to read frames on demand (then only a few frames are held in memory at a time).
     ``key_poses`` (optional, :func:`gdiff.frames.key_frames`): ``{(path, i): time}`` of the poses of
     the training photos; the frames of such a pose (at both times) are key frames of the tracker
-    (:attr:`gdiff.track.TrackFrame.key`). ``workers`` > 1: the frames are segmented ahead on
-    that many processes (:func:`gdiff.parallel.ordered_map`; only segmenters with
-    ``parallel_safe``), then tracked here in order; the result does not depend on it.
+    (:attr:`gdiff.track.TrackFrame.key`). ``workers`` > 1: the frames are segmented on that
+    many processes (:func:`gdiff.parallel.ordered_map`; only segmenters with ``parallel_safe``)
+    while this process tracks them in order, each as soon as its labels are there; the result
+    does not depend on it.
     Returns (ID map int32 [H, W] per key, tracks table with id, first, last, n_frames,
     mean_area; first/last as "path/t/NNNNN").
     """
@@ -138,16 +143,20 @@ def track_paths(frames, segmenter: Segmenter, track_options: TrackOptions | None
         raise SceneError(f"rendered frames missing for {missing[:3]} (every path needs the same "
                          "frames at t0 and t1); re-run the render stage")
     o = track_options or TrackOptions()
-    labels = None
+    ahead = None
     if workers > 1 and getattr(segmenter, "parallel_safe", False):
-        # the workers read each frame for its labels only; the tracker reads it again when it
-        # gets there (holding every frame's images until then would not fit on long paths)
-        segmented = ordered_map(_SegmentAhead(get, segmenter), order, workers, chunksize=4)
-        labels = {k: narrow_ids(m) for k, m in
-                  enumerate(progress(segmented, desc="segment", total=len(order)))}
+        # the workers segment the frames in chain order while the tracker follows them here
+        # (it takes each frame's labels as they come); the workers read each frame for its
+        # labels only, the tracker reads it again when it gets there (holding every frame's
+        # images until then would not fit on long paths)
+        ahead = ordered_map(_SegmentAhead(get, segmenter), order, workers, chunksize=4)
     chain = _Chain(order, get, segmenter, keep=o.max_missed + 3,
-                   key_poses=key_poses, labels=labels)
-    res = track_sequence(chain, o)
+                   key_poses=key_poses, ahead=ahead)
+    try:
+        res = track_sequence(chain, o)
+    finally:
+        if ahead is not None:
+            ahead.close()  # stops the workers if the tracker stopped early
     ids = {key: m for key, m in zip(order, res.ids)}
     tracks = res.tracks.copy()
     fmt = lambda k: f"{order[k][0]}/{order[k][1]}/{order[k][2]:05d}"  # noqa: E731

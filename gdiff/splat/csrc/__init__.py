@@ -275,16 +275,18 @@ def sh_to_color_cpp(degree: int, coeffs: torch.Tensor, dirs: torch.Tensor) -> to
 class _HexPlaneSample(torch.autograd.Function):
     @staticmethod
     def forward(ctx, table, coords, planes, group):
-        out = load(required=True).hexplane_forward(table, coords, planes, group)
-        ctx.save_for_backward(table, coords, planes)
-        ctx.group = group
+        # the samples of every plane [N, P, F] are kept for the backward pass, which then
+        # needs no second look-up in the table
+        out, samples = load(required=True).hexplane_forward_samples(table, coords, planes, group)
+        ctx.save_for_backward(samples, coords, planes)
+        ctx.group, ctx.rows = group, table.shape[0]
         return out
 
     @staticmethod
     def backward(ctx, grad):
-        table, coords, planes = ctx.saved_tensors
-        g = load(required=True).hexplane_backward(table, grad.contiguous(), coords, planes,
-                                                  ctx.group)
+        samples, coords, planes = ctx.saved_tensors
+        g = load(required=True).hexplane_backward(samples, grad.contiguous(), coords, planes,
+                                                  ctx.group, ctx.rows)
         return g, None, None, None
 
 
@@ -304,5 +306,9 @@ def hexplane_sample(table: torch.Tensor, coords: torch.Tensor, planes: torch.Ten
         [N, P / group, F]: per group, the product of ``grid_sample(bilinear, border,
         align_corners=True)`` of its planes; differentiable with respect to ``table``.
     """
+    if not (table.requires_grad and torch.is_grad_enabled()):  # no samples kept
+        return load(required=True).hexplane_forward(table.contiguous(),
+                                                    coords.detach().contiguous(),
+                                                    planes.contiguous(), int(group))
     return _HexPlaneSample.apply(table.contiguous(), coords.detach().contiguous(),
                                  planes.contiguous(), int(group))

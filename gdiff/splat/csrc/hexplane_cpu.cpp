@@ -8,6 +8,8 @@
 // All planes live in one channels-last table [R, F]: plane p's texel (x, y) is row
 // offset_p + y * W_p + x. The samples of the planes of one level are multiplied (HexPlane). Channels-last makes each texel's F features one contiguous read,
 // where grid_sample on [1, F, H, W] strides over F planes; that is what makes this faster.
+// For training, the forward pass also returns every plane's samples, which the backward pass
+// reads instead of sampling the table again.
 // The backward pass scatters into dense gradient tables, one per fixed part of the points,
 // added in a fixed order, so the result is the same for any thread count.
 
@@ -72,8 +74,10 @@ inline void sample(const float* T, const float* C, const int64_t* pl, int64_t n,
 // table [R, F] float32, coords [N, 4] float32 in [-1, 1], planes [P, 5] int64 rows
 // (axis a, axis b, W, H, row offset), P = levels x group: the planes of a level are
 // consecutive and their samples are multiplied -> features [N, levels, F]
-at::Tensor hexplane_forward(at::Tensor table, at::Tensor coords, at::Tensor planes,
-                            int64_t group) {
+// The samples of every plane go to S [N, P, F] when S is given (training: the backward pass
+// reads them there instead of sampling the table again).
+static at::Tensor forward_impl(const at::Tensor& table, const at::Tensor& coords,
+                               const at::Tensor& planes, int64_t group, float* S) {
   check(table, "table", 2, at::kFloat);
   check(coords, "coords", 2, at::kFloat);
   check(planes, "planes", 2, at::kLong);
@@ -88,20 +92,36 @@ at::Tensor hexplane_forward(at::Tensor table, at::Tensor coords, at::Tensor plan
   float* O = out.data_ptr<float>();
   at::parallel_for(0, N, 256, [=](int64_t begin, int64_t end) {
     // captured by value: locals the compiler knows no store aliases (faster inner loops)
-    std::vector<float> s(F);
+    std::vector<float> buf(F);
     Corners c;
     for (int64_t n = begin; n < end; ++n) {
       for (int64_t l = 0; l < L; ++l) {
         float* o = O + (n * L + l) * F;
         for (int64_t f = 0; f < F; ++f) o[f] = 1.f;
         for (int64_t p = l * group; p < (l + 1) * group; ++p) {
-          sample(T, C, PL + p * 5, n, F, s.data(), c);
+          float* s = S ? S + (n * P + p) * F : buf.data();
+          sample(T, C, PL + p * 5, n, F, s, c);
           for (int64_t f = 0; f < F; ++f) o[f] *= s[f];
         }
       }
     }
   });
   return out;
+}
+
+at::Tensor hexplane_forward(at::Tensor table, at::Tensor coords, at::Tensor planes,
+                            int64_t group) {
+  return forward_impl(table, coords, planes, group, nullptr);
+}
+
+// The same features [N, levels, F] and every plane's samples [N, P, F], for
+// hexplane_backward.
+std::tuple<at::Tensor, at::Tensor> hexplane_forward_samples(at::Tensor table, at::Tensor coords,
+                                                            at::Tensor planes, int64_t group) {
+  at::Tensor samples = at::empty({coords.size(0), planes.size(0), table.size(1)},
+                                 table.options());
+  at::Tensor out = forward_impl(table, coords, planes, group, samples.data_ptr<float>());
+  return {out, samples};
 }
 
 // grad_out [N, levels, F] -> grad_table [rows, F] (product rule with prefix / suffix
@@ -112,23 +132,29 @@ at::Tensor hexplane_forward(at::Tensor table, at::Tensor coords, at::Tensor plan
 // same for any number of threads (deterministic, as training resume needs).
 constexpr int64_t kParts = 4;
 
-at::Tensor hexplane_backward(at::Tensor table, at::Tensor grad_out, at::Tensor coords,
-                             at::Tensor planes, int64_t group) {
-  check(table, "table", 2, at::kFloat);
+// samples: the forward pass's samples of every plane [N, P, F] (hexplane_forward_samples);
+// rows: the table's row count. The corners are found again, the table is not read.
+at::Tensor hexplane_backward(at::Tensor samples, at::Tensor grad_out, at::Tensor coords,
+                             at::Tensor planes, int64_t group, int64_t rows) {
+  check(samples, "samples", 3, at::kFloat);
   check(grad_out, "grad_out", 3, at::kFloat);
   check(coords, "coords", 2, at::kFloat);
   check(planes, "planes", 2, at::kLong);
-  const int64_t N = coords.size(0), P = planes.size(0), F = table.size(1);
-  const int64_t L = P / group, rows = table.size(0);
+  const int64_t N = coords.size(0), P = planes.size(0), F = grad_out.size(2);
+  const int64_t L = P / group;
+  TORCH_CHECK(group > 0 && P % group == 0 && grad_out.size(0) == N && grad_out.size(1) == L,
+              "grad_out [N, levels, F], planes whole groups");
+  TORCH_CHECK(samples.size(0) == N && samples.size(1) == P && samples.size(2) == F,
+              "samples [N, P, F]");
   const int64_t parts = std::max<int64_t>(1, std::min<int64_t>(kParts, N / 4096));
-  at::Tensor acc = at::empty({parts, rows, F}, table.options());  // zeroed by its part below
-  const float* T = table.data_ptr<float>();
+  const float* S = samples.data_ptr<float>();
+  at::Tensor acc = at::empty({parts, rows, F}, samples.options());  // zeroed by its part below
   const float* G = grad_out.data_ptr<float>();
   const float* C = coords.data_ptr<float>();
   const int64_t* PL = planes.data_ptr<int64_t>();
   float* A = acc.data_ptr<float>();
   at::parallel_for(0, parts, 1, [=](int64_t pb, int64_t pe) {
-    std::vector<float> s(group * F), pre((group + 1) * F), suf((group + 1) * F);
+    std::vector<float> pre((group + 1) * F), suf((group + 1) * F);
     std::vector<Corners> cs(group);
     for (int64_t part = pb; part < pe; ++part) {
       float* R = A + part * rows * F;
@@ -136,8 +162,11 @@ at::Tensor hexplane_backward(at::Tensor table, at::Tensor grad_out, at::Tensor c
       for (int64_t n = part * N / parts; n < (part + 1) * N / parts; ++n) {
         for (int64_t l = 0; l < L; ++l) {
           const float* g = G + (n * L + l) * F;
-          for (int64_t q = 0; q < group; ++q)
-            sample(T, C, PL + (l * group + q) * 5, n, F, s.data() + q * F, cs[q]);
+          const float* s = S + (n * P + l * group) * F;  // this level's samples
+          for (int64_t q = 0; q < group; ++q) {
+            const int64_t* pl = PL + (l * group + q) * 5;
+            cs[q] = corners(C[n * 4 + pl[0]], C[n * 4 + pl[1]], pl[2], pl[3], pl[4]);
+          }
           for (int64_t f = 0; f < F; ++f) { pre[f] = 1.f; suf[group * F + f] = 1.f; }
           for (int64_t q = 0; q < group; ++q)
             for (int64_t f = 0; f < F; ++f) pre[(q + 1) * F + f] = pre[q * F + f] * s[q * F + f];
@@ -169,5 +198,6 @@ at::Tensor hexplane_backward(at::Tensor table, at::Tensor grad_out, at::Tensor c
 
 TORCH_LIBRARY_FRAGMENT(gdiff_splat, m) {
   m.def("hexplane_forward", &hexplane_forward);
+  m.def("hexplane_forward_samples", &hexplane_forward_samples);
   m.def("hexplane_backward", &hexplane_backward);
 }

@@ -444,6 +444,32 @@ def test_nearest_views_bound_the_work_but_not_the_result():
                     min_parallax=20.0).sum() < full.sum()
 
 
+def test_observed_on_a_coarser_grid():
+    """``step``: coverage tested on every step-th pixel of every step-th row; each block takes
+    its tested pixel's answer, and pixels with no surface stay unobserved."""
+    from gdiff.compare.coverage import DepthView, observed
+
+    cam = _plane_camera(0.0)
+    plane = np.full((H, W), 5.0, np.float32)
+    plane[:, :7] = np.nan  # no surface on the left
+    rng = np.random.default_rng(5)
+    views = []
+    for x in (-3.0, -1.0, 1.5, 4.0):
+        zk = np.full((H, W), 5.0, np.float32)
+        a = int(rng.integers(0, W - 12))
+        zk[:, a:a + 12] = 3.0  # hides part of the plane from this view
+        views.append(DepthView(_plane_camera(x), zk))
+    for step in (2, 3):
+        full = observed(plane, cam, views, 0.05, 2, min_parallax=10.0, seen=True)
+        got = observed(plane, cam, views, 0.05, 2, min_parallax=10.0, seen=True, step=step)
+        for f, g in zip(full, got):
+            # every pixel with a surface answers as its block's tested (top-left) pixel
+            block = f[::step, ::step].repeat(step, 0).repeat(step, 1)[:H, :W]
+            assert (g == (block & np.isfinite(plane))).all(), step
+            assert 0 < g.mean() < 1 and not g[:, :7].any()
+            assert (g != f).mean() < 0.1  # a block-sized band along the borders
+
+
 def test_spread_views_are_picked_for_parallax():
     """``spread``: among views that share most of the frame, the picked ones span the widest
     directions (the plain ranking takes the best-covering, here the closest together)."""

@@ -97,6 +97,10 @@ class CompareOptions:
     observed_max_views: per frame only the key views of each time that see most of its
         surface are used, at most this many (:func:`gdiff.compare.coverage.nearest_views`; keeps the
         cost per frame independent of the number of photos). 0 uses every key view.
+    observed_grid: coverage is tested on a grid of about this many pixels along each frame's
+        longer side (every k-th pixel of every k-th row, k = longer side // observed_grid,
+        at least 1; each k x k block takes its tested pixel's answer): coverage changes over
+        many pixels, and the test's cost grows with the pixels tested. 0 tests every pixel.
     geometry: also mark surfaces that appear or vanish in 3D (depth voted over all poses,
         :mod:`gdiff.compare.geometry`), whatever their IDs: objects the segmenter merged with
         their support.
@@ -141,6 +145,7 @@ class CompareOptions:
     observed_min_views: int = 3
     observed_min_parallax: float = 10.0
     observed_max_views: int = 8
+    observed_grid: int = 160
     geometry: bool = True
     geometry_voxel_px: float = 4.0
     geometry_vote: float = 0.5
@@ -152,10 +157,17 @@ class CompareOptions:
     confirm_colour: float = 0.25
     surround_width: float = 0.05
 
+    def observed_step(self, height: int, width: int) -> int:
+        """Pixel step of the coverage test on a ``height`` x ``width`` frame (see
+        ``observed_grid``)."""
+        return max(1, max(height, width) // self.observed_grid) if self.observed_grid else 1
+
     def __post_init__(self):
         if not 0 <= self.observed_min_parallax < 180:
             raise ConfigError("config key 'compare.observed_min_parallax' must lie in [0, 180) "
                               "degrees")
+        if self.observed_grid < 0:
+            raise ConfigError("config key 'compare.observed_grid' must be >= 0 (0: every pixel)")
         if self.observed_max_views < 0:
             raise ConfigError("config key 'compare.observed_max_views' must be >= 0 (0: every "
                               "key view)")

@@ -169,7 +169,7 @@ def surface(depth: np.ndarray, alpha: np.ndarray | None = None,
 def observed(depth: np.ndarray, camera: Camera, views: list[DepthView], depth_tol: float = 0.05,
              min_views: int = 1, alpha: np.ndarray | None = None,
              alpha_min: float = 0.5, min_parallax: float = 0.0,
-             max_views: int = 0, seen: bool = False):
+             max_views: int = 0, seen: bool = False, step: int = 1):
     """bool [H, W]: pixels of a frame (z-depth [H, W], ``camera``) rendered at time t whose
     surface at least ``min_views`` key views of time t see (see the module docstring), from
     directions at least ``min_parallax`` degrees apart (a surface seen from one direction only
@@ -187,12 +187,36 @@ def observed(depth: np.ndarray, camera: Camera, views: list[DepthView], depth_to
     surface at least one key view sees (a photo of that time shows it, so the render there
     reproduces a photo, though with fewer views or too little parallax its depth is not
     determined).
+
+    With ``step`` > 1 the test runs on every ``step``-th pixel of every ``step``-th row only
+    (the top-left pixel of each ``step`` x ``step`` block), and each block takes its tested
+    pixel's answer (a pixel with a surface in a block whose tested pixel has none is not
+    observed): coverage changes over many pixels, so a coarser grid keeps the cost per frame
+    down at the price of block-sized steps along its borders.
     """
     z = np.asarray(depth)
     out = surface(z, alpha, alpha_min)
     if not views:
         return (out, out.copy()) if seen else out
+    if step > 1:
+        H, W = out.shape
+        # pixel centres of the tested pixels: the full-size camera, every step-th pixel
+        P = world_points(z, camera)[::step, ::step]
+        grid = out[::step, ::step]
+        masks = _observed_points(P, grid, views, depth_tol, min_views, min_parallax, max_views,
+                                 seen)
+        full = [np.repeat(np.repeat(m, step, 0), step, 1)[:H, :W] & out for m in masks]
+        return tuple(full) if seen else full[0]
     P = world_points(z, camera)
+    masks = _observed_points(P, out, views, depth_tol, min_views, min_parallax, max_views, seen)
+    return tuple(masks) if seen else masks[0]
+
+
+def _observed_points(P: np.ndarray, out: np.ndarray, views: list[DepthView], depth_tol: float,
+                     min_views: int, min_parallax: float, max_views: int,
+                     seen: bool) -> list[np.ndarray]:
+    """The masks of :func:`observed` (observed, and with ``seen`` the seen one) for the world
+    points ``P`` [h, w, 3] of the pixels ``out`` bool [h, w] that show a surface."""
 
     def sees(pts, vs):
         """(observed, seen by one view at least), bool [n] each."""
@@ -222,4 +246,4 @@ def observed(depth: np.ndarray, camera: Camera, views: list[DepthView], depth_to
         ok = np.zeros(out.size, bool)
         ok[todo] = r
         masks.append(ok.reshape(out.shape))
-    return tuple(masks) if seen else masks[0]
+    return masks

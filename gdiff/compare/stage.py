@@ -74,7 +74,8 @@ class _JudgePose:
                     seen[time] = observed(f["depth"], cam, views[time], o.observed_depth_tol,
                                           o.observed_min_views, f.get("alpha"),
                                           min_parallax=o.observed_min_parallax,
-                                          max_views=o.observed_max_views, seen=True)
+                                          max_views=o.observed_max_views, seen=True,
+                                          step=o.observed_step(*f["depth"].shape))
         obs = [s[0] if s is not None else None for s in seen]
         shown = [s[1] if s is not None else None for s in seen]
         judged = None

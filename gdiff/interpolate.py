@@ -79,8 +79,8 @@ class InterpolateOptions:
     """
 
     n: int = 0
-    max_angle_deg: float | None = 1.5
-    max_step: float | None = 0.05
+    max_angle_deg: float | None = 2.5
+    max_step: float | None = 0.08
     reorder: str = "auto"
     jump_factor: float = 3.0
     rotation_weight: float = 1.0

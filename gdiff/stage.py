@@ -6,7 +6,7 @@ Workflow scripts stay thin::
     run_stage(snakemake, lambda: some_gdiff_function(...))
 
 :func:`run_stage` sends log messages and tqdm progress to ``snakemake.log[0]``, limits torch
-to the rule's ``threads``, and turns a :class:`~gdiff.errors.GdiffError` into its message (in
+to the rule's ``threads``, keeps freed memory for reuse (:mod:`gdiff.memory`), and turns a :class:`~gdiff.errors.GdiffError` into its message (in
 the log and on the console) and exit status 1, instead of a traceback.
 """
 
@@ -23,11 +23,13 @@ def run_stage(smk: Any, fn: Callable[[], Any], name: str | None = None) -> Any:
     from .device import set_threads
     from .errors import GdiffError
     from .log import setup_logging
+    from .memory import keep_freed_memory
 
     console = sys.stderr
     log_path = smk.log[0] if len(smk.log) else None
     setup_logging(log_path)
     set_threads(getattr(smk, "threads", None))
+    keep_freed_memory()
     log = logging.getLogger("gdiff.stage")
     name = name or getattr(smk, "rule", "stage")
     log.info("rule %s: start (wildcards %s)", name, dict(smk.wildcards.items()))

@@ -323,7 +323,8 @@ def pose_stats(ids0: np.ndarray, ids1: np.ndarray, o: CompareOptions,
                focal: float | None = None, camera=None, observed0: np.ndarray | None = None,
                observed1: np.ndarray | None = None, seen0: np.ndarray | None = None,
                seen1: np.ndarray | None = None,
-               appearance: np.ndarray | None = None) -> dict[int, dict]:
+               appearance: np.ndarray | None = None,
+               points: tuple[np.ndarray, np.ndarray] | None = None) -> dict[int, dict]:
     """Compare the ID maps int [H, W] of one pose at t0 and t1.
 
     Returns, per ID visible at this pose: ``area0``, ``area1`` (pixels), ``candidate`` (absent
@@ -355,7 +356,9 @@ def pose_stats(ids0: np.ndarray, ids1: np.ndarray, o: CompareOptions,
     other time, changed depth, or is the same surface. A region only seen (a sparse capture:
     an object one photo shows, whose depth the fit could put anywhere along that photo's rays)
     is judged by its appearance. ``appearance`` (bool [H, W], optional): the pose's
-    :func:`appearance_change` of ``rgb0`` and ``rgb1`` when the caller has it already.
+    :func:`appearance_change` of ``rgb0`` and ``rgb1`` when the caller has it already;
+    ``points`` (optional): the world points [H, W, 3] of ``depth0`` and ``depth1``
+    (:func:`gdiff.track.world_points` with ``camera``), likewise.
 
     Texture-only confirmation also needs different colours (Bhattacharyya coefficient of the
     region's chromaticity histograms < ``texture_color_similarity``) and, with depth, is not
@@ -375,6 +378,8 @@ def pose_stats(ids0: np.ndarray, ids1: np.ndarray, o: CompareOptions,
     cache: dict[str, np.ndarray] = {}
     if appearance is not None:
         cache["chroma"] = np.asarray(appearance, bool)
+    if points is not None:
+        cache["P0"], cache["P1"] = points
 
     def raw_depth_change():
         if "raw" not in cache:

@@ -169,7 +169,8 @@ def surface(depth: np.ndarray, alpha: np.ndarray | None = None,
 def observed(depth: np.ndarray, camera: Camera, views: list[DepthView], depth_tol: float = 0.05,
              min_views: int = 1, alpha: np.ndarray | None = None,
              alpha_min: float = 0.5, min_parallax: float = 0.0,
-             max_views: int = 0, seen: bool = False, step: int = 1):
+             max_views: int = 0, seen: bool = False, step: int = 1,
+             points: np.ndarray | None = None):
     """bool [H, W]: pixels of a frame (z-depth [H, W], ``camera``) rendered at time t whose
     surface at least ``min_views`` key views of time t see (see the module docstring), from
     directions at least ``min_parallax`` degrees apart (a surface seen from one direction only
@@ -193,21 +194,24 @@ def observed(depth: np.ndarray, camera: Camera, views: list[DepthView], depth_to
     pixel's answer (a pixel with a surface in a block whose tested pixel has none is not
     observed): coverage changes over many pixels, so a coarser grid keeps the cost per frame
     down at the price of block-sized steps along its borders.
+
+    ``points`` (optional): the frame's world points [H, W, 3]
+    (:func:`gdiff.track.world_points` of ``depth`` and ``camera``) when the caller has them.
     """
     z = np.asarray(depth)
     out = surface(z, alpha, alpha_min)
     if not views:
         return (out, out.copy()) if seen else out
+    P = world_points(z, camera) if points is None else points
     if step > 1:
         H, W = out.shape
         # pixel centres of the tested pixels: the full-size camera, every step-th pixel
-        P = world_points(z, camera)[::step, ::step]
+        P = P[::step, ::step]
         grid = out[::step, ::step]
         masks = _observed_points(P, grid, views, depth_tol, min_views, min_parallax, max_views,
                                  seen)
         full = [np.repeat(np.repeat(m, step, 0), step, 1)[:H, :W] & out for m in masks]
         return tuple(full) if seen else full[0]
-    P = world_points(z, camera)
     masks = _observed_points(P, out, views, depth_tol, min_views, min_parallax, max_views, seen)
     return tuple(masks) if seen else masks[0]
 

@@ -67,6 +67,13 @@ class _JudgePose:
         o, get, views = self.o, self.get, self.views
         f0, f1 = get((p, "t0", i)), get((p, "t1", i))
         cam = f0.get("camera")
+        z0, z1 = f0.get("depth"), f1.get("depth")
+        have_depth = cam is not None and z0 is not None and z1 is not None
+        evidence = have_depth and (self.geo_stride is not None or self.flat_stride is not None)
+        # world points of each time's depth, computed once for the coverage, the ID tests
+        # and the evidence (when one of the first and the last needs them)
+        need = cam is not None and (views is not None or evidence)
+        pts = [world_points(z, cam) if need and z is not None else None for z in (z0, z1)]
         seen = [None, None]  # per time: depth determined there (observed), shown by a photo
         if views is not None and cam is not None:
             for time, f in enumerate((f0, f1)):
@@ -75,7 +82,8 @@ class _JudgePose:
                                           o.observed_min_views, f.get("alpha"),
                                           min_parallax=o.observed_min_parallax,
                                           max_views=o.observed_max_views, seen=True,
-                                          step=o.observed_step(*f["depth"].shape))
+                                          step=o.observed_step(*f["depth"].shape),
+                                          points=pts[time])
         obs = [s[0] if s is not None else None for s in seen]
         shown = [s[1] if s is not None else None for s in seen]
         judged = None
@@ -83,9 +91,6 @@ class _JudgePose:
             both = surface(f0["depth"], f0.get("alpha")) & surface(f1["depth"], f1.get("alpha"))
             judged = np.array([int(both.sum()), int((shown[0] & shown[1]).sum()),
                                int((obs[0] & obs[1]).sum())], np.int64)
-        z0, z1 = f0.get("depth"), f1.get("depth")
-        have_depth = cam is not None and z0 is not None and z1 is not None
-        evidence = have_depth and (self.geo_stride is not None or self.flat_stride is not None)
         differ = None  # the pose's appearance change: the evidence needs it, the IDs may
         if evidence and f0.get("rgb") is not None and f1.get("rgb") is not None:
             differ = appearance_change(f0["rgb"], f1["rgb"], o.chroma_tol, o.ncc_min)
@@ -93,19 +98,18 @@ class _JudgePose:
             self.ids[(p, "t0", i)], self.ids[(p, "t1", i)], o, f0.get("rgb"), f1.get("rgb"),
             z0, z1, focal=cam.fx if cam is not None else None,
             camera=cam, observed0=obs[0], observed1=obs[1], seen0=shown[0], seen1=shown[1],
-            appearance=differ))
+            appearance=differ, points=tuple(pts) if have_depth and need else None))
         g_rec = f_rec = None
         if evidence:
             known = obs[0] & obs[1] if obs[0] is not None and obs[1] is not None else None
-            points = (world_points(z0, cam), world_points(z1, cam))
             if self.geo_stride is not None:
                 g_rec = pose_record(z0, z1, cam, *pose_flags(z0, z1, o.depth_change_rel,
                                                              o.evidence_open, known, differ),
-                                    points=points, stride=self.geo_stride)
+                                    points=tuple(pts), stride=self.geo_stride)
             if self.flat_stride is not None and differ is not None:
                 f_rec = pose_record(z0, z1, cam, *flat_flags(z0, z1, o.depth_change_rel,
                                                              o.evidence_open, known, differ),
-                                    points=points, stride=self.flat_stride)
+                                    points=tuple(pts), stride=self.flat_stride)
         return stats, judged, g_rec, f_rec
 
 

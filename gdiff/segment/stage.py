@@ -34,8 +34,9 @@ log = logging.getLogger("gdiff.segment")
 class _Chain(Sequence):
     """:class:`TrackFrame` s of the chain order, loaded and segmented on demand.
 
-    Each frame is segmented once, when first read (the tracker reads frames in chain order);
-    its labels are kept, the images only for the last ``keep`` frames read, so memory does not
+    Each frame is segmented once: taken from ``ahead`` (labels segmented elsewhere, in chain
+    order) up to that frame, or segmented here when first read (the tracker reads frames in
+    chain order); its labels are kept, the images only for the last ``keep`` frames read, so memory does not
     grow with the number of frames. A frame read again after that (a same-pose partner far
     back in the chain) is loaded again.
     """

@@ -5,7 +5,7 @@ Input: a workflow results folder of a synthetic scene (``render/``, ``sequence/p
 synth preset + seed that built it.
 
 1. The registered cameras (COLMAP frame) are aligned to the ground-truth cameras with a Sim3
-   (:func:`gdiff.align.umeyama_sim3` on the camera centres of the same images).
+   (:func:`gdiff.align.pose_errors`: a similarity fitted to the camera centres of the same images).
 2. Every path pose is mapped into the synth frame and rendered by the synth scene in both
    states (pixel-centre ground truth: ``changed`` = a changed object is visible); the truth per
    pose is ``gt_t0`` (state before), ``gt_t1`` (after) and their union.
@@ -37,7 +37,7 @@ import pandas as pd
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # gdiff from this checkout
 
 from gdiff import synth
-from gdiff.align import umeyama_sim3
+from gdiff.align import pose_errors
 from gdiff.cameras import Camera
 from gdiff.compare import CompareOptions, compare
 from gdiff.frames import key_frames, read_sequence
@@ -48,17 +48,14 @@ from gdiff.sfm import read_cameras_file
 from gdiff.track import TrackOptions
 
 
-def align_to_gt(registered: list[Camera], gt: list[Camera]) -> tuple[float, np.ndarray, np.ndarray, float]:
+def align_to_gt(registered: list[Camera], gt: list[Camera]
+                ) -> tuple[float, np.ndarray, np.ndarray, float]:
     """Sim3 (s, R, t) mapping the registered frame onto the ground-truth frame
-    (x_gt = s R x + t) from the centres of the images both lists hold, and the RMS centre
-    residual after alignment (GT units)."""
-    by = {c.image: c for c in gt}
-    pairs = [(c, by[c.image]) for c in registered if c.image in by]
-    src = np.stack([c.center for c, _ in pairs])
-    dst = np.stack([g.center for _, g in pairs])
-    s, R, t = umeyama_sim3(src, dst)
-    res = np.linalg.norm((s * (R @ src.T)).T + t - dst, axis=1)
-    return s, R, t, float(np.sqrt((res ** 2).mean()))
+    (x_gt = s R x + t; :func:`gdiff.align.pose_errors`, from the centres of the images both
+    lists hold), and the RMS centre residual after alignment (GT units)."""
+    err = pose_errors(registered, gt)
+    a = err.attrs
+    return a["scale"], a["R"], a["t"], float(np.sqrt((err["center_err"] ** 2).mean()))
 
 
 def to_gt_frame(cam: Camera, s: float, R: np.ndarray, t: np.ndarray) -> Camera:

@@ -970,6 +970,84 @@ def test_flat_object_merged_with_its_support_is_found_in_3d(tmp_path):
         read_evidence(tmp_path / "broken.npz")
 
 
+def test_flat_change_the_photos_show_alike_is_the_fits_own():
+    """The fit renders a poster on the wall at t0 at every pose, the same way (so the 3D vote
+    keeps it), but the training photos of both times show the bare wall there: the fit's own
+    error, left out. When the photos of t0 show the poster and those of t1 the bare wall, it
+    is kept. Photos of one time only, or none, leave the evidence as it was."""
+    cams = [_wall_camera(x) for x in np.linspace(-1.0, 1.0, 9)]
+    keys = {("p1", i): i % 2 for i in range(len(cams))}  # even poses: t0 photos, odd: t1
+    ids, frames, truth, bare, poster = {}, {}, {}, {}, {}
+    for i, cam in enumerate(cams):
+        z = _box_scene_depth(cam, False)
+        u = (np.arange(cam.width) + 0.5 - cam.cx) / cam.fx
+        v = (np.arange(cam.height) + 0.5 - cam.cy) / cam.fy
+        x = cam.c2w[0, 3] + u[None, :] * 5.0 + 0 * v[:, None]
+        y = v[:, None] * 5.0 + 0 * u[None, :]
+        truth[i] = (np.abs(x + 0.2) <= 0.5) & (np.abs(y) <= 0.4)
+        rgb0, rgb1 = _wall_rgb(cam, z), _wall_rgb(cam, z)
+        bare[i] = srgb_to_linear(rgb1)
+        rgb0[truth[i]] = (0.55, 0.5, 0.85)
+        poster[i] = srgb_to_linear(rgb0)
+        for t, rgb in (("t0", rgb0), ("t1", rgb1)):
+            ids[("p1", t, i)] = np.ones(z.shape, np.int32)
+            frames[("p1", t, i)] = dict(depth=z.copy(), camera=cam, rgb=rgb)
+    o = CompareOptions(observed_min_views=1, observed_min_parallax=0.0)
+
+    def flat_pixels(photos, options=o):
+        masks, _ = compare_paths(ids, frames, options, keys=keys, photos=photos)
+        return sum(int((m0 & truth[i]).sum()) for (_, i), (m0, _) in masks.items())
+
+    found = flat_pixels(None)
+    assert found > 0.75 * sum(int(t.sum()) for t in truth.values())
+    assert flat_pixels({k: bare[k[1]] for k in keys}) == 0  # photographed alike: the fit's own
+    real = {k: (poster if t == 0 else bare)[k[1]] for k, t in keys.items()}
+    assert flat_pixels(real) == found
+    assert flat_pixels({k: bare[k[1]] for k in keys},
+                       dataclasses.replace(o, flat_photo_contrast=0.0)) == found  # not asked
+    one_time = {k: bare[k[1]] for k, t in keys.items() if t == 0}
+    assert flat_pixels(one_time) == found  # the photos cannot tell
+
+
+def test_photos_differ_against_their_spread_within_a_time():
+    from gdiff.compare.photos import photos_differ
+
+    rng = np.random.default_rng(0)
+    grey = [np.array([0.3, 0.3, 0.3]) * (1 + 0.05 * rng.normal()) for _ in range(6)]
+    grey2 = [np.array([0.3, 0.3, 0.3]) * (1 + 0.05 * rng.normal()) for _ in range(6)]
+    assert photos_differ(grey, grey2, 3.0) is False
+    assert photos_differ(grey, [g * 2.0 for g in grey2], 3.0) is True  # one stop brighter
+    blue = [np.array([0.2, 0.2, 0.4]) * (1 + 0.05 * rng.normal()) for _ in range(6)]
+    assert photos_differ(grey, blue, 3.0) is True  # same brightness, another colour
+    assert photos_differ(grey[:1], blue, 3.0) is None  # one photo of t0: cannot tell
+    # a spread as large as the difference (view-dependent shading) is no change
+    shaded = [np.array([0.3, 0.3, 0.3]) * s for s in (0.5, 1.0, 2.0, 0.5, 1.0, 2.0)]
+    assert photos_differ(shaded, [m * 1.3 for m in shaded], 3.0) is False
+
+
+def test_view_means_count_only_the_surface_a_photo_shows():
+    """Points on a wall at z = 5 count in a photo that renders the wall there, not in one whose
+    rendered surface is nearer (an object in front of them at that time)."""
+    from gdiff.compare.photos import KeyPhoto, view_means
+
+    cam = _wall_camera(0.0)
+    z = _box_scene_depth(cam, False)
+    photo = np.zeros((cam.height, cam.width, 3), np.float32)
+    photo[:, :80] = (0.2, 0.4, 0.6)
+    photo[:, 80:] = (0.9, 0.9, 0.9)
+    pts = np.array([[x, y, 5.0] for x in np.linspace(-1.5, -0.5, 5) for y in (-0.5, 0.0, 0.5)])
+    covered = _box_scene_depth(cam, True)  # a box at z = 4 hides x in [-0.6, 0.6]
+    m0, m1 = view_means(pts, [KeyPhoto(0, cam, z, photo), KeyPhoto(1, cam, covered, photo)],
+                        tol=0.1)
+    assert len(m0) == 1 and np.allclose(m0[0], (0.2, 0.4, 0.6))
+    assert len(m1) == 1 and np.allclose(m1[0], (0.2, 0.4, 0.6))  # x < -0.6 still shows
+    behind = pts[:, 0] >= -0.6
+    assert behind.any()
+    m0, m1 = view_means(pts[behind], [KeyPhoto(0, cam, z, photo),
+                                      KeyPhoto(1, cam, covered, photo)], tol=0.1)
+    assert len(m0) == 1 and m1 == []  # hidden behind the box at t1
+
+
 def test_moving_light_with_no_object_change_gives_no_change():
     """The lightchange preset with every object left in place: the sun moves and changes
     colour, hard shadows and highlights move. Each frame's depth also gets its own smooth

@@ -10,7 +10,9 @@ The rule ``compare`` maps to this package:
 * :mod:`.coverage` — which pixels of a frame the training photos of each time saw, from
   several directions (only those are judged);
 * :mod:`.geometry` — surfaces that appear or vanish in 3D, voted over all poses whatever
-  their IDs (objects the segmenter merged with their support), added to the masks.
+  their IDs (objects the segmenter merged with their support), added to the masks;
+* :mod:`.photos` — whether the training photos of the two times differ where the flat
+  evidence says a surface's appearance changed (the fit's own errors are photographed alike).
 
 The appearance test (:mod:`gdiff.appearance`) stays a top-level module: the tracker of the
 ``segment`` stage uses it as well.

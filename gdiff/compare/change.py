@@ -116,6 +116,11 @@ class CompareOptions:
     flat_max_rate: when more than this share of the surfaces judged in 3D (seen from
         ``geometry_min_poses`` poses) changed appearance, the change is taken to be one of
         light (moved shadows, another sun) and the flat evidence is not used.
+    flat_photo_contrast: a component of the flat evidence is kept only when the training
+        photos of the two times differ there by at least this many times their spread within
+        a time, in brightness or chromaticity (:mod:`gdiff.compare.photos`): the fit renders
+        some unchanged surfaces differently at the two times, the photos show them alike.
+        0: not checked (also when the stage has no photos).
     confirm_support: a changed object of the ID comparison is kept only when at least this
         share of its pixels lie within two voxels of the 3D evidence (the geometry evidence:
         its shape changed; and, when the light stayed the same, the flat evidence: its
@@ -153,6 +158,7 @@ class CompareOptions:
     geometry_min_object: float = 0.003
     flat: bool = True
     flat_max_rate: float = 0.05
+    flat_photo_contrast: float = 3.0
     confirm_support: float = 0.5
     confirm_colour: float = 0.25
     surround_width: float = 0.05
@@ -181,6 +187,9 @@ class CompareOptions:
             raise ConfigError("config key 'compare.surround_width' must lie in (0, 0.5)")
         if not 0 < self.flat_max_rate <= 1:
             raise ConfigError("config key 'compare.flat_max_rate' must lie in (0, 1]")
+        if self.flat_photo_contrast < 0:
+            raise ConfigError("config key 'compare.flat_photo_contrast' must be >= 0 (0: the "
+                              "photos are not asked)")
         if self.geometry_voxel_px <= 0 or self.geometry_min_poses < 1 \
                 or not 0 <= self.geometry_min_object < 1:
             raise ConfigError("config keys 'compare.geometry_voxel_px' (> 0), "

@@ -204,6 +204,21 @@ class GeometryEvidence:
             stats["objects"] += n
         return stats
 
+    def drop(self, components) -> int:
+        """Remove the changed voxels of ``components`` (numbers as in :meth:`labels`), after
+        :meth:`finish`; returns the number of voxels removed. The other components keep their
+        numbers."""
+        removed = 0
+        for t in (0, 1):
+            keep = ~np.isin(self.component[t], np.asarray(components, np.int64))
+            removed += int((~keep).sum())
+            self.changed[t], self.component[t] = self.changed[t][keep], self.component[t][keep]
+        return removed
+
+    def centres(self, keys: np.ndarray) -> np.ndarray:
+        """World points [K, 3] of the centres of the voxels ``keys`` (after :meth:`finish`)."""
+        return (_unpack(np.asarray(keys, np.int64)) + 0.5) * self.voxel
+
     def masks(self, pose) -> tuple[np.ndarray, np.ndarray]:
         """bool [H, W] change pixels of ``pose`` at t0 (vanished) and t1 (appeared)."""
         l0, l1 = self.labels(pose)

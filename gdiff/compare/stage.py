@@ -34,6 +34,7 @@ from .change import CompareOptions, appearance_change, change_masks, decide, pos
 from .coverage import DepthView, observed, surface
 from .geometry import (GeometryEvidence, flat_flags, pose_flags, pose_record,
                        write_evidence)
+from .photos import KeyPhoto, alike_components, load_photo
 
 log = logging.getLogger("gdiff.compare")
 
@@ -115,7 +116,8 @@ class _JudgePose:
 
 def compare_paths(ids: dict[Key, np.ndarray], frames: dict[Key, dict] | None,
                   options: CompareOptions | None = None,
-                  keys: dict[tuple[str, int], int] | None = None, workers: int = 1
+                  keys: dict[tuple[str, int], int] | None = None, workers: int = 1,
+                  photos: dict[tuple[str, int], np.ndarray] | None = None
                   ) -> tuple[dict[tuple[str, int], tuple[np.ndarray, np.ndarray]], pd.DataFrame]:
     """Change masks per pose from the tracked ID maps.
 
@@ -125,7 +127,10 @@ def compare_paths(ids: dict[Key, np.ndarray], frames: dict[Key, dict] | None,
     ``{(path, i): time}`` of the path frames that are training cameras (key frames) of that
     time; with them only pixels a training photo of each time saw are compared
     (:mod:`gdiff.compare.coverage`). ``workers``: processes the poses are judged on
-    (:func:`gdiff.parallel.ordered_map`; the result does not depend on it). Returns
+    (:func:`gdiff.parallel.ordered_map`; the result does not depend on it). ``photos``
+    (optional): ``{(path, i): linear RGB float32 [H, W, 3]}``, the training photo of each key
+    frame at the frame's size; with them the flat evidence keeps only what the photos of the
+    two times show differently (``flat_photo_contrast``, :mod:`gdiff.compare.photos`). Returns
     ({(path, i): (mask_t0, mask_t1)}, changes table: id,
     changed, type, partner, n_t0, n_t1, n_confirmed, first, last, area, instance, x, y, z,
     size; see :func:`gdiff.compare.change.decide`). The table's
@@ -166,6 +171,21 @@ def compare_paths(ids: dict[Key, np.ndarray], frames: dict[Key, dict] | None,
     g_flat = flat.finish(max_rate=o.flat_max_rate) if flat is not None else None
     band = max(1, int(round(2 * o.geometry_voxel_px)))
     light_changed = g_flat is not None and g_flat["rejected"]
+    alike = np.zeros(0, np.int64)
+    if g_flat is not None and not light_changed and g_flat["objects"] and photos and keys \
+            and o.flat_photo_contrast > 0:
+        alike, n_judged = alike_components(
+            flat.changed, flat.component, flat.voxel, flat.centres,
+            [KeyPhoto(t, f["camera"], f["depth"], photos[(p, i)])
+             for (p, i), t in sorted(keys.items()) if (p, i) in photos
+             for f in [get((p, TIMES[int(t)], i))]
+             if f.get("depth") is not None and f.get("camera") is not None],
+            o.flat_photo_contrast)
+        flat.drop(alike)
+        log.info("flat changes: the photos of the two times judged %d of %d components and show "
+                 "%d of them alike (within compare.flat_photo_contrast = %g times their spread "
+                 "within a time): left out", n_judged, g_flat["objects"], len(alike),
+                 o.flat_photo_contrast)
     if light_changed:  # said first: the rules below depend on it
         log.info("flat changes: appearance changed on %.1f %% of the surfaces judged (more "
                  "than compare.flat_max_rate = %.1f %%): taken as a change of light, nothing "
@@ -195,9 +215,10 @@ def compare_paths(ids: dict[Key, np.ndarray], frames: dict[Key, dict] | None,
         added = _add_evidence(masks, flat, leave_out=rims)
         if not g["rejected"]:
             log.info("flat changes: appearance changed on %.1f %% of the surfaces judged; %d "
-                     "changed voxels in %d objects, %d of them the rims or shadows of other "
-                     "changes (left out); %d pixels added over %d poses", 100 * g["rate"],
-                     g["changed_voxels"], g["objects"], len(rims), added, len(masks))
+                     "changed voxels in %d objects, %d of them alike in the photos and %d "
+                     "the rims or shadows of other changes (left out); %d pixels added over "
+                     "%d poses", 100 * g["rate"], g["changed_voxels"], g["objects"],
+                     len(alike), len(rims), added, len(masks))
     log.info("compared %d poses: %d of %d IDs changed (%s)", len(poses), len(changed), len(df),
              ", ".join(f"{t}: {(df['type'] == t).sum()}" for t in ("added", "removed", "moved")))
     df.attrs["evidence3d"] = evidence
@@ -348,7 +369,7 @@ def _rims(flat: GeometryEvidence, masks, n: int, band: int) -> np.ndarray:
 
 
 def compare(instances_dir, poses_json, out_dir, options: CompareOptions | None = None,
-            workers: int = 1) -> dict:
+            workers: int = 1, photo_root=None) -> dict:
     """Stage ``compare``: change masks of every pose from the tracked IDs.
 
     Reads ``instances_dir/index.json`` (and through it the ID maps and the rendered EXR frames,
@@ -359,7 +380,9 @@ def compare(instances_dir, poses_json, out_dir, options: CompareOptions | None =
     last
     ``out_dir/keyframes.csv`` (path, frame, image, set, time, mask_t0, mask_t1, mask_union;
     mask paths relative to the parent of ``out_dir``, i.e. results/<scene>/). ``workers``:
-    processes the poses are judged on (the files do not depend on it).
+    processes the poses are judged on (the files do not depend on it). ``photo_root``: the
+    folder the key frames' ``image`` names are relative to (:func:`gdiff.cameras.image_root`);
+    with it the training photos check the flat evidence (``compare_paths``' ``photos``).
     """
     instances_dir, out_dir = Path(instances_dir), Path(out_dir)
     index = read_json(instances_dir / "index.json")
@@ -385,7 +408,15 @@ def compare(instances_dir, poses_json, out_dir, options: CompareOptions | None =
     def load(key):
         return keyed[key] if key in keyed else read(key)
 
-    masks, df = compare_paths(ids, load, options, keys=keys, workers=workers)
+    photos = None
+    if photo_root is not None and (options or CompareOptions()).flat_photo_contrast > 0:
+        photos = {}
+        for (p, i), t in sorted(keys.items()):
+            image, depth = meta[p][i].get("image"), keyed[(p, TIMES[t], i)].get("depth")
+            if image and depth is not None:
+                photos[(p, i)] = load_photo(Path(photo_root) / image, depth.shape[1],
+                                            depth.shape[0])
+    masks, df = compare_paths(ids, load, options, keys=keys, workers=workers, photos=photos)
     root = out_dir.parent
     rows = []
     for (p, i), (m0, m1) in sorted(masks.items()):

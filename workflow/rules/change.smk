@@ -25,6 +25,7 @@ rule segment:
 
 rule compare:
     input:
+        scene=scene_dir,
         index=res("{scene}", "instances", "index.json"),
         frames=frame_dirs,
         poses=res("{scene}", "sequence", "poses.json"),

@@ -1,0 +1,140 @@
+"""The training photos' word on a change of appearance in 3D: do the photos of the two times
+differ where the fitted model's renders do?
+
+The flat evidence (:func:`gdiff.compare.geometry.flat_flags`) marks surfaces that stay in place
+but render differently at t0 and t1. Some of those differences are the fit's own: each time has
+its own photos, and a patch of table that one time's photos constrain less well renders a
+little differently, the same way from every pose, so it passes the vote over poses like a
+book put down on the table. The photos tell them apart. Each component of the evidence (its
+voxels at its time, world frame) is projected into the training photos of both times
+(:class:`KeyPhoto`: a photo with its camera and the z-depth the model renders there at that
+photo's time); a voxel counts in a photo when it lies on the surface the photo shows there
+(rendered depth within ``tol`` of the voxel's depth). Each photo gives the mean linear colour
+of the voxels it shows; :func:`photos_differ` then compares the two times' photos against the
+spread of the photos within each time (view-dependent shading, noise): a component whose
+photos of the two times look alike, to within ``contrast`` times that spread in brightness and
+in chromaticity, did not change.
+
+Coordinates: world frame of the poses stage; cameras are camera-to-world (OpenCV axes: x
+right, y down, z forward; pixel centres at +0.5); depth is camera-frame z, as in the EXR ``Z``
+channel.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from ..io import read_image, srgb_to_linear
+
+log = logging.getLogger("gdiff.compare")
+
+# noise floors of the spreads, so that photos that agree exactly (a rendered test scene) do
+# not make every small difference significant: log intensity and chromaticity (r, g, b
+# summing to 1) of a mean over many pixels
+_LOG_FLOOR = 0.01
+_CHROMA_FLOOR = 0.005
+
+
+@dataclass
+class KeyPhoto:
+    """One training photo: ``time`` (0 or 1), ``camera`` (:class:`gdiff.cameras.Camera`,
+    camera-to-world), ``depth`` float [H, W] the z-depth rendered from the model at this camera
+    and time (NaN or <= 0: no surface) and ``photo`` float32 [H, W, 3] linear RGB, at the
+    camera's size."""
+    time: int
+    camera: object
+    depth: np.ndarray
+    photo: np.ndarray
+
+
+def load_photo(path: str | Path, width: int, height: int) -> np.ndarray:
+    """A photo as linear RGB float32 [height, width, 3] (area-resampled when its size differs);
+    a missing or unreadable file is a :class:`~gdiff.errors.SceneError` naming it."""
+    img = read_image(path)
+    if img.shape[:2] != (height, width):
+        img = cv2.resize(img, (width, height), interpolation=cv2.INTER_AREA)
+    return srgb_to_linear(img)
+
+
+def view_means(points: np.ndarray, photos: list[KeyPhoto], tol: float, min_points: int = 3
+               ) -> tuple[list[np.ndarray], list[np.ndarray]]:
+    """Per time, the mean linear colour [3] of ``points`` (float [M, 3], world frame) in every
+    photo of that time that shows at least ``min_points`` of them (in the frame, in front of
+    the camera, and within ``tol`` world units of the depth rendered there)."""
+    out: tuple[list, list] = ([], [])
+    P = np.asarray(points, np.float64)
+    for kp in photos:
+        cam = kp.camera
+        h, w = kp.depth.shape
+        if (cam.width, cam.height) != (w, h):  # a frame rendered at another size
+            cam = cam.scaled(w / cam.width)
+        w2c = np.linalg.inv(np.asarray(cam.c2w, np.float64))
+        X = P @ w2c[:3, :3].T + w2c[:3, 3]
+        z = X[:, 2]
+        front = z > 1e-9
+        zs = np.where(front, z, 1.0)
+        u = np.floor(cam.fx * X[:, 0] / zs + cam.cx).astype(np.int64)
+        v = np.floor(cam.fy * X[:, 1] / zs + cam.cy).astype(np.int64)
+        ok = front & (u >= 0) & (v >= 0) & (u < w) & (v < h)
+        if ok.sum() < min_points:
+            continue
+        u, v, z = u[ok], v[ok], z[ok]
+        d = np.asarray(kp.depth)[v, u]
+        on = np.isfinite(d) & (d > 0) & (np.abs(d - z) <= tol)
+        if on.sum() < min_points:
+            continue
+        out[int(kp.time)].append(np.asarray(kp.photo)[v[on], u[on]].mean(0))
+    return out
+
+
+def photos_differ(means0: list[np.ndarray], means1: list[np.ndarray], contrast: float,
+                  min_views: int = 2) -> bool | None:
+    """Whether the photos of the two times show a region differently: the difference of the
+    two times' mean log intensity is at least ``contrast`` times the spread (standard
+    deviation) of the per-photo log intensities within a time, or the L1 difference of their
+    mean chromaticities (r, g, b over r + g + b) is at least ``contrast`` times the mean L1
+    deviation of the per-photo chromaticities from their time's mean. ``means0`` /
+    ``means1``: per photo of each time, the region's mean linear colour [3]
+    (:func:`view_means`). None (cannot tell) when either time has fewer than ``min_views``
+    photos of the region."""
+    if len(means0) < min_views or len(means1) < min_views:
+        return None
+    m0, m1 = np.asarray(means0, np.float64), np.asarray(means1, np.float64)
+    l0, l1 = np.log(m0.mean(1) + 0.02), np.log(m1.mean(1) + 0.02)
+    s_log = max(np.sqrt((l0.var() + l1.var()) / 2), _LOG_FLOOR)
+    c0 = m0 / np.maximum(m0.sum(1, keepdims=True), 1e-9)
+    c1 = m1 / np.maximum(m1.sum(1, keepdims=True), 1e-9)
+    s_chroma = max((np.abs(c0 - c0.mean(0)).sum(1).mean()
+                    + np.abs(c1 - c1.mean(0)).sum(1).mean()) / 2, _CHROMA_FLOOR)
+    d_log = abs(l0.mean() - l1.mean())
+    d_chroma = np.abs(c0.mean(0) - c1.mean(0)).sum()
+    return bool(d_log >= contrast * s_log or d_chroma >= contrast * s_chroma)
+
+
+def alike_components(keys: list[np.ndarray], components: list[np.ndarray], voxel: float,
+                     to_points, photos: list[KeyPhoto], contrast: float,
+                     tol_voxels: float = 1.5) -> tuple[np.ndarray, int]:
+    """The components of a 3D evidence whose photos of the two times look alike
+    (:func:`photos_differ` False), and how many components the photos could judge.
+
+    ``keys[t]`` (int64 [K_t]) and ``components[t]`` (int [K_t]) are the evidence's changed
+    voxels at time t and their component numbers (:class:`GeometryEvidence` ``changed`` and
+    ``component``); ``to_points`` maps voxel keys to their centres (float [K, 3], world);
+    ``voxel`` is the voxel side, and a voxel counts in a photo within ``tol_voxels`` voxels of
+    the rendered depth."""
+    alike, judged = [], 0
+    for t in (0, 1):
+        for c in np.unique(components[t]):
+            pts = to_points(keys[t][components[t] == c])
+            verdict = photos_differ(*view_means(pts, photos, tol_voxels * voxel), contrast)
+            if verdict is None:
+                continue
+            judged += 1
+            if not verdict:
+                alike.append(int(c))
+    return np.asarray(sorted(alike), np.int64), judged

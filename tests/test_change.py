@@ -918,6 +918,18 @@ def test_id_change_without_3d_or_colour_change_is_not_a_change_under_unchanged_l
     assert set(ungated.loc[ungated["changed"], "id"]) == {2, 3}  # what the IDs alone say
 
 
+def _wall_poster(camera):
+    """The wall of :func:`_box_scene_depth` (no box) at ``camera``: z-depth [H, W], the world
+    x and y [H, W] of each pixel on it, and bool [H, W] where a poster (|x + 0.2| <= 0.5,
+    |y| <= 0.4) hangs on it."""
+    z = _box_scene_depth(camera, False)
+    u = (np.arange(camera.width) + 0.5 - camera.cx) / camera.fx
+    v = (np.arange(camera.height) + 0.5 - camera.cy) / camera.fy
+    x = camera.c2w[0, 3] + u[None, :] * 5.0 + 0 * v[:, None]
+    y = v[:, None] * 5.0 + 0 * u[None, :]
+    return z, x, y, (np.abs(x + 0.2) <= 0.5) & (np.abs(y) <= 0.4)
+
+
 def test_flat_object_merged_with_its_support_is_found_in_3d(tmp_path):
     """A poster hangs on the wall at t0 and is gone at t1; the segmenter gave it and the wall
     one ID at both times and its depth is the wall's. Its change of appearance, voted in 3D
@@ -929,12 +941,7 @@ def test_flat_object_merged_with_its_support_is_found_in_3d(tmp_path):
     cams = [_wall_camera(x) for x in np.linspace(-1.0, 1.0, 9)]
     ids, frames, truth = {}, {}, {}
     for i, cam in enumerate(cams):
-        z = _box_scene_depth(cam, False)
-        u = (np.arange(cam.width) + 0.5 - cam.cx) / cam.fx
-        v = (np.arange(cam.height) + 0.5 - cam.cy) / cam.fy
-        x = cam.c2w[0, 3] + u[None, :] * 5.0 + 0 * v[:, None]
-        y = v[:, None] * 5.0 + 0 * u[None, :]
-        truth[i] = (np.abs(x + 0.2) <= 0.5) & (np.abs(y) <= 0.4)
+        z, x, y, truth[i] = _wall_poster(cam)
         rgb0, rgb1 = _wall_rgb(cam, z), _wall_rgb(cam, z)
         dots = (np.sin(40 * x) * np.sin(40 * y) > 0.5)[truth[i]]
         rgb0[truth[i]] = np.where(dots[:, None], (0.95, 0.95, 0.95), (0.55, 0.5, 0.85))
@@ -979,12 +986,7 @@ def test_flat_change_the_photos_show_alike_is_the_fits_own():
     keys = {("p1", i): i % 2 for i in range(len(cams))}  # even poses: t0 photos, odd: t1
     ids, frames, truth, bare, poster = {}, {}, {}, {}, {}
     for i, cam in enumerate(cams):
-        z = _box_scene_depth(cam, False)
-        u = (np.arange(cam.width) + 0.5 - cam.cx) / cam.fx
-        v = (np.arange(cam.height) + 0.5 - cam.cy) / cam.fy
-        x = cam.c2w[0, 3] + u[None, :] * 5.0 + 0 * v[:, None]
-        y = v[:, None] * 5.0 + 0 * u[None, :]
-        truth[i] = (np.abs(x + 0.2) <= 0.5) & (np.abs(y) <= 0.4)
+        z, _, _, truth[i] = _wall_poster(cam)
         rgb0, rgb1 = _wall_rgb(cam, z), _wall_rgb(cam, z)
         bare[i] = srgb_to_linear(rgb1)
         rgb0[truth[i]] = (0.55, 0.5, 0.85)

@@ -182,6 +182,16 @@ def read_image(path: str | os.PathLike) -> np.ndarray:
     return np.ascontiguousarray(img[:, :, ::-1])
 
 
+
+def read_image_sized(path: str | os.PathLike, width: int, height: int) -> np.ndarray:
+    """:func:`read_image` resized (area-averaged) to ``width`` x ``height`` when its size
+    differs: float32 sRGB [height, width, 3] in [0, 1]."""
+    img = read_image(path)
+    if img.shape[:2] != (height, width):
+        img = cv2.resize(img, (width, height), interpolation=cv2.INTER_AREA)
+    return img
+
+
 def write_image(path: str | os.PathLike, img: np.ndarray) -> None:
     """Write float RGB in [0, 1] ([H, W, 3]) or uint8 as an 8-bit PNG/JPEG, atomically."""
     img = np.asarray(img)

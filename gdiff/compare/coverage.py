@@ -33,8 +33,11 @@ class DepthView:
     depth: np.ndarray
 
 
-def _sees(P: np.ndarray, finite: np.ndarray, v: DepthView, depth_tol: float) -> np.ndarray:
-    """bool [N]: ``v`` sees the world points ``P`` [N, 3] (see :func:`view_count`)."""
+def project_to_depth(P: np.ndarray, finite: np.ndarray, v: DepthView
+                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The world points ``P`` [N, 3] (``finite`` bool [N]: the ones to consider) that fall in
+    front of ``v``'s camera and inside its depth map: their indices ``idx`` int [K], their
+    camera-frame z [K] and their pixel's row and column (int64 [K]; pixel centres at +0.5)."""
     c = v.camera
     Q = (P - c.c2w[:3, 3]) @ c.c2w[:3, :3]  # world -> camera (rotation transposed)
     z = Q[:, 2]
@@ -42,12 +45,18 @@ def _sees(P: np.ndarray, finite: np.ndarray, v: DepthView, depth_tol: float) -> 
     zs = np.where(ok, z, 1.0)
     u = np.floor(c.fx * Q[:, 0] / zs + c.cx)
     w = np.floor(c.fy * Q[:, 1] / zs + c.cy)
-    dz = np.asarray(v.depth)
-    ok &= (u >= 0) & (u < dz.shape[1]) & (w >= 0) & (w < dz.shape[0])
+    h, wd = np.asarray(v.depth).shape
+    ok &= (u >= 0) & (u < wd) & (w >= 0) & (w < h)
     idx = np.flatnonzero(ok)
-    zk = dz[w[idx].astype(np.int64), u[idx].astype(np.int64)].astype(np.float64)
+    return idx, z[idx], w[idx].astype(np.int64), u[idx].astype(np.int64)
+
+
+def _sees(P: np.ndarray, finite: np.ndarray, v: DepthView, depth_tol: float) -> np.ndarray:
+    """bool [N]: ``v`` sees the world points ``P`` [N, 3] (see :func:`view_count`)."""
+    idx, z, row, col = project_to_depth(P, finite, v)
+    zk = np.asarray(v.depth)[row, col].astype(np.float64)
     seen = np.zeros(len(P), bool)
-    seen[idx[np.isfinite(zk) & (zk > 0) & (np.abs(z[idx] - zk) <= depth_tol * np.abs(zk))]] = True
+    seen[idx[np.isfinite(zk) & (zk > 0) & (np.abs(z - zk) <= depth_tol * np.abs(zk))]] = True
     return seen
 
 

@@ -22,16 +22,14 @@ channel.
 
 from __future__ import annotations
 
-import logging
 from dataclasses import dataclass
 from pathlib import Path
 
-import cv2
 import numpy as np
 
-from ..io import read_image, srgb_to_linear
+from ..io import read_image_sized, srgb_to_linear
+from .coverage import DepthView, project_to_depth
 
-log = logging.getLogger("gdiff.compare")
 
 # noise floors of the spreads, so that photos that agree exactly (a rendered test scene) do
 # not make every small difference significant: log intensity and chromaticity (r, g, b
@@ -55,10 +53,7 @@ class KeyPhoto:
 def load_photo(path: str | Path, width: int, height: int) -> np.ndarray:
     """A photo as linear RGB float32 [height, width, 3] (area-resampled when its size differs);
     a missing or unreadable file is a :class:`~gdiff.errors.SceneError` naming it."""
-    img = read_image(path)
-    if img.shape[:2] != (height, width):
-        img = cv2.resize(img, (width, height), interpolation=cv2.INTER_AREA)
-    return srgb_to_linear(img)
+    return srgb_to_linear(read_image_sized(path, width, height))
 
 
 def view_means(points: np.ndarray, photos: list[KeyPhoto], tol: float, min_points: int = 3
@@ -68,27 +63,18 @@ def view_means(points: np.ndarray, photos: list[KeyPhoto], tol: float, min_point
     the camera, and within ``tol`` world units of the depth rendered there)."""
     out: tuple[list, list] = ([], [])
     P = np.asarray(points, np.float64)
+    finite = np.isfinite(P).all(-1)
     for kp in photos:
         cam = kp.camera
         h, w = kp.depth.shape
         if (cam.width, cam.height) != (w, h):  # a frame rendered at another size
             cam = cam.scaled(w / cam.width)
-        w2c = np.linalg.inv(np.asarray(cam.c2w, np.float64))
-        X = P @ w2c[:3, :3].T + w2c[:3, 3]
-        z = X[:, 2]
-        front = z > 1e-9
-        zs = np.where(front, z, 1.0)
-        u = np.floor(cam.fx * X[:, 0] / zs + cam.cx).astype(np.int64)
-        v = np.floor(cam.fy * X[:, 1] / zs + cam.cy).astype(np.int64)
-        ok = front & (u >= 0) & (v >= 0) & (u < w) & (v < h)
-        if ok.sum() < min_points:
-            continue
-        u, v, z = u[ok], v[ok], z[ok]
-        d = np.asarray(kp.depth)[v, u]
+        _, z, row, col = project_to_depth(P, finite, DepthView(cam, kp.depth))
+        d = np.asarray(kp.depth)[row, col]
         on = np.isfinite(d) & (d > 0) & (np.abs(d - z) <= tol)
         if on.sum() < min_points:
             continue
-        out[int(kp.time)].append(np.asarray(kp.photo)[v[on], u[on]].mean(0))
+        out[int(kp.time)].append(np.asarray(kp.photo)[row[on], col[on]].mean(0))
     return out
 
 

@@ -53,6 +53,17 @@ def key_views(frames, keys: dict[tuple[str, int], int] | None) -> dict[int, list
     return out
 
 
+def _key_photos(get, keys: dict[tuple[str, int], int], photos: dict) -> list[KeyPhoto]:
+    """The key frames that have a photo (``photos[(path, i)]``) and a rendered depth and camera
+    at their own time (``get``: key -> frame dict), as :class:`KeyPhoto`."""
+    out = []
+    for (p, i), t in sorted(keys.items()):
+        f = get((p, TIMES[int(t)], i)) if (p, i) in photos else {}
+        if f.get("depth") is not None and f.get("camera") is not None:
+            out.append(KeyPhoto(int(t), f["camera"], f["depth"], photos[(p, i)]))
+    return out
+
+
 class _JudgePose:
     """The per-pose part of :func:`compare_paths` (depends on that pose alone, so poses can be
     judged in parallel): called with ``(path, i)``, returns ``(stats entry, judged pixel counts
@@ -176,10 +187,7 @@ def compare_paths(ids: dict[Key, np.ndarray], frames: dict[Key, dict] | None,
             and o.flat_photo_contrast > 0:
         alike, n_judged = alike_components(
             flat.changed, flat.component, flat.voxel, flat.centres,
-            [KeyPhoto(t, f["camera"], f["depth"], photos[(p, i)])
-             for (p, i), t in sorted(keys.items()) if (p, i) in photos
-             for f in [get((p, TIMES[int(t)], i))]
-             if f.get("depth") is not None and f.get("camera") is not None],
+            _key_photos(get, keys, photos),
             o.flat_photo_contrast)
         flat.drop(alike)
         log.info("flat changes: the photos of the two times judged %d of %d components and show "

@@ -15,7 +15,7 @@ import pandas as pd
 
 from ..cameras import load_cameras
 from ..errors import SceneError
-from ..io import read_image, read_mask
+from ..io import read_image_sized, read_mask
 
 
 @dataclass
@@ -91,10 +91,7 @@ def read_key_views(keyframes_csv, cameras_json, scene_dir, max_side: int = 0) ->
 
 def _load_image(path, camera) -> np.ndarray:
     """Photo as float32 [H, W, 3] sRGB in [0, 1], resized (area) to the camera's size."""
-    img = read_image(path)
-    if img.shape[:2] != (camera.height, camera.width):
-        img = cv2.resize(img, (camera.width, camera.height), interpolation=cv2.INTER_AREA)
-    return img
+    return read_image_sized(path, camera.width, camera.height)
 
 
 def _load_mask(path, camera) -> np.ndarray:

@@ -1155,3 +1155,33 @@ def test_chroma_hist_bins_as_histogram2d():
                          range=[[0, 1], [0, 1]])[0]
     np.testing.assert_array_equal(_chroma_hist((c, w), m), ref)
     assert _chroma_hist((c, w), np.zeros_like(m)).sum() == 0
+
+
+def test_foot_of_an_added_object_at_its_support_depth_is_kept_and_its_shadow_is_not():
+    """A box is added in front of the wall and a red foot reaches down from it onto the wall
+    (at the wall's depth: no depth change, like the lowest part of an object standing on a
+    table). The depth finds the box; the foot changed appearance only, and most of it lies
+    within the two voxels around the box, but it reaches beyond them: it is a part of the
+    object, not its rim, and is marked. The shadow the box casts, all of it within two voxels
+    of the box, is not."""
+    cams = [_wall_camera(x) for x in np.linspace(-1.0, 1.0, 9)]
+    ids, frames, box, foot, shadow = {}, {}, {}, {}, {}
+    for i, cam in enumerate(cams):
+        z0, z1 = _box_scene_depth(cam, False), _box_scene_depth(cam, True)
+        box[i] = z1 < 4.5
+        P = world_points(z1, cam)
+        foot[i] = ((np.abs(P[..., 0]) <= 0.6) & (P[..., 1] >= 0.6) & (P[..., 1] <= 1.25)
+                   & ~box[i])
+        shadow[i] = ((P[..., 0] >= -0.8) & (P[..., 0] < -0.6) & (P[..., 1] >= -0.6)
+                     & (P[..., 1] <= 0.2) & ~box[i])
+        rgb0, rgb1 = _wall_rgb(cam, z0), _wall_rgb(cam, z1, box[i] | foot[i])
+        rgb1[shadow[i]] *= np.array([0.35, 0.4, 0.6], np.float32)
+        for t, z, rgb in (("t0", z0, rgb0), ("t1", z1, rgb1)):
+            ids[("p1", t, i)] = np.ones(z.shape, np.int32)
+            frames[("p1", t, i)] = dict(depth=z, camera=cam, rgb=rgb)
+    masks, _ = compare_paths(ids, frames, CompareOptions())
+    for i in range(len(cams)):
+        m1 = masks[("p1", i)][1]
+        assert (m1 & box[i]).sum() > 0.75 * box[i].sum(), i
+        assert (m1 & foot[i]).sum() > 0.5 * foot[i].sum(), (i, (m1 & foot[i]).sum())
+        assert (m1 & shadow[i]).sum() <= 0.25 * shadow[i].sum(), i

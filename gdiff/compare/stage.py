@@ -353,12 +353,13 @@ def _add_evidence(masks, ev: GeometryEvidence, leave_out: np.ndarray | None = No
 
 def _rims(flat: GeometryEvidence, masks, n: int, band: int) -> np.ndarray:
     """Components of the flat evidence that are the rims or shadows of other changes: at the
-    poses that show them, at least 3/4 of the pixels they would add to ``masks`` (the ID
+    poses that show them, at least 9/10 of the pixels they would add to ``masks`` (the ID
     comparison's and the geometry's changes) lie within ``band`` pixels of those changes. A
     changed object darkens the surface it stands on and blurs into it at its outline; those
     pixels keep their depth and change appearance, like a flat object, but hug the object. A
-    flat object the ID comparison found in part reaches farther beyond that part and is
-    kept."""
+    flat object the ID comparison found in part, or the lowest part of an object standing on
+    its support (too near the support for its depth to tell them apart), reaches beyond that
+    band and is kept, even when most of it lies within the band."""
     if n == 0:
         return np.zeros(0, np.int64)
     new = np.zeros(n, np.int64)
@@ -373,7 +374,7 @@ def _rims(flat: GeometryEvidence, masks, n: int, band: int) -> np.ndarray:
             sel = (lab >= 0) & ~other
             new += np.bincount(lab[sel], minlength=n)
             near += np.bincount(lab[sel & ring], minlength=n)
-    return np.flatnonzero(near >= 0.75 * np.maximum(new, 1))
+    return np.flatnonzero(near >= 0.9 * np.maximum(new, 1))
 
 
 def compare(instances_dir, poses_json, out_dir, options: CompareOptions | None = None,

@@ -207,6 +207,16 @@ def test_stage_files(demo_paths, tmp_path, monkeypatch):
     assert {"x", "y", "z", "size"} <= set(ch.columns)
     kept = cand[cand["verdict"] != "dropped"]
     assert set(kept["instance"]) == set(ch["instance"])
+    # a rendered frame gone (the workflow's temp() frames): a clear error, the outputs kept
+    before = (res / "change" / "changes.csv").read_bytes()
+    (res / "render" / "p1" / "t1" / "00002.exr").unlink()
+    with pytest.raises(SceneError, match=r"00002\.exr: rendered frame not found \(1 of 8.*"
+                                         r"re-run render"):
+        compare(res / "instances", res / "sequence" / "poses.json", res / "change",
+                CompareOptions())
+    assert (res / "change" / "changes.csv").read_bytes() == before
+    _write_exr(res / "render" / "p1" / "t1" / "00002.exr", frames[("p1", "t1", 2)]["rgb"],
+               frames[("p1", "t1", 2)]["depth"])
     # overlays on request: one per frame, the same IDs; a later run without them removes them
     inst2 = res / "instances_overlays"
     segment_and_track(res / "render", res / "sequence" / "poses.json", inst2,

@@ -404,8 +404,15 @@ def compare(instances_dir, poses_json, out_dir, options: CompareOptions | None =
     if not ids:
         raise SceneError(f"{instances_dir / 'index.json'}: no frames listed; re-run segment")
 
+    missing = [f for f in renders.values() if not f.exists()]
+    if missing:
+        raise SceneError(f"{missing[0]}: rendered frame not found ({len(missing)} of "
+                         f"{len(renders)} frames that {instances_dir / 'index.json'} lists are "
+                         "missing); re-run render (the workflow deletes the frames once segment "
+                         "and compare have read them, unless render.keep_frames is true)")
+
     def read(key):
-        if key not in renders or not renders[key].exists():
+        if key not in renders:
             return {}
         rgb, alpha, depth = read_frame(renders[key])
         return dict(rgb=rgb, alpha=alpha, depth=depth, camera=cams[key[0]][key[2]])

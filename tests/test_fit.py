@@ -268,6 +268,25 @@ def test_divergence_raises_training_error_naming_iteration_and_checkpoint(scene,
                   callback=poison)
 
 
+def test_fit_that_prunes_every_gaussian_stops_with_a_training_error(scene, tmp_path):
+    """A refine step that leaves no Gaussian (every opacity under the prune threshold, as after
+    an opacity reset they did not recover from) stops the fit with a clear error, not a model
+    of nothing."""
+    opts = small_options(coarse_iters=40, fine_iters=0, densify_from=5, densify_every=10,
+                         opacity_reset_every=0)
+
+    def fade(trainer):
+        if trainer.iteration == 25:
+            with torch.no_grad():
+                trainer.model.splats["opacities"].fill_(-20.0)
+
+    with pytest.raises(TrainingError, match=r"collapsed at iteration 30.*pruned every "
+                                            r"Gaussian.*fit\.seed"):
+        fit_scene(scene.dir, scene.cameras, scene.points, tmp_path / "o", opts, "cpu",
+                  callback=fade)
+    assert not (tmp_path / "o" / "model.pt").exists()
+
+
 def test_inputs_without_after_images_are_rejected(scene, tmp_path):
     cams = [c for c in load_cameras(scene.cameras) if c.set == "before"]
     save_cameras(tmp_path / "c.json", cams)

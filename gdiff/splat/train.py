@@ -666,6 +666,12 @@ def fit_scene(scene_dir: str | Path, cameras_json: str | Path, points_ply: str |
                                     f"{where}") from None
             trainer.elapsed = time.time() - t_start
             it = rec["iteration"]
+            if rec["n_gaussians"] == 0:
+                raise TrainingError(
+                    f"fit collapsed at iteration {it}: the refine step pruned every Gaussian "
+                    f"(opacity under prune_opacity = {opts.prune_opacity}, e.g. not yet "
+                    "recovered from the opacity reset); the checkpoints replay the same run: "
+                    "set another fit.seed, or fit.opacity_reset_every: 0, and re-run")
             if "densify" in rec:
                 log.debug("iteration %d: densify %s", it, rec["densify"])
             if opts.log_every and (it % opts.log_every == 0 or it == total):

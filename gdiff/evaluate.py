@@ -66,8 +66,8 @@ from .baselines import (MethodNotApplicable, Prediction, as_prediction, evidence
                         render_diff_method)
 from .cameras import Camera, image_root, load_cameras
 from .errors import ConfigError, SceneError
-from .io import (imread_upright, read_image, read_json, read_mask, write_csv, write_image,
-                 write_mask)
+from .io import (imread_upright, read_image, read_image_sized, read_json, read_mask, write_csv,
+                 write_image, write_mask)
 from .scene import list_images
 from .log import progress
 from .metrics import aggregate, gt_box_scores, object_regions, object_scores, score_view
@@ -203,11 +203,8 @@ class EvalView:
         if path is None:
             raise MethodNotApplicable(f"view {self.name}: no eval {'before' if t == 0 else 'after'}"
                                       " image")
-        img = read_image(path)
         h, w = self.read_gt().shape
-        if img.shape[:2] != (h, w):
-            img = cv2.resize(img, (w, h), interpolation=cv2.INTER_AREA)
-        return img
+        return read_image_sized(path, w, h)
 
     def display_image(self) -> np.ndarray:
         """The after image (else the before image; a box view's image) for overlays,

@@ -182,7 +182,6 @@ def read_image(path: str | os.PathLike) -> np.ndarray:
     return np.ascontiguousarray(img[:, :, ::-1])
 
 
-
 def read_image_sized(path: str | os.PathLike, width: int, height: int) -> np.ndarray:
     """:func:`read_image` resized (area-averaged) to ``width`` x ``height`` when its size
     differs: float32 sRGB [height, width, 3] in [0, 1]."""

@@ -39,7 +39,7 @@ from .cameras import Camera, image_root
 from .errors import SceneError
 from .exr import FRAME_COMPRESSIONS, write_frame
 from .interpolate import load_sequence
-from .io import read_image, write_image, write_json
+from .io import read_image_sized, write_image, write_json
 from .log import progress
 
 log = logging.getLogger("gdiff.sequence")
@@ -306,10 +306,8 @@ def render_sequences(model_path: str | os.PathLike, poses_json: str | os.PathLik
                                                         if cam.image else ""))
                                 tkeys.append(keys[p][i])
                             if scene_dir is not None and keys[p][i] and KEY_SET[p][0] == tn:
-                                photo = read_image(photo_root / cam.image)
-                                if photo.shape[:2] != preview.shape[:2]:
-                                    photo = cv2.resize(photo, preview.shape[1::-1],
-                                                       interpolation=cv2.INTER_AREA)
+                                photo = read_image_sized(photo_root / cam.image,
+                                                         preview.shape[1], preview.shape[0])
                                 key_psnr.setdefault(p, {})[cam.image] = psnr(preview, photo)
                         seconds["write"] += time.perf_counter() - tic
                         bar.update(len(chunk))

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import logging
+import shutil
 from pathlib import Path
 
 import numpy as np
@@ -18,6 +19,7 @@ from gdiff.options import from_config
 from gdiff.sfm import (PosesOptions, discover_images, extraction_scale, proximity_pairs,
                        read_cameras_file, refine_model, run_poses, sequential_pairs,
                        set_from_path)
+from gdiff.sfm.match import all_pairs, match_in_processes
 from gdiff.sfm.colmap import _extract, _mapper_options, _read_descriptors, core_images
 from gdiff.sfm.pairs import retrieval_pairs, word_histograms
 from gdiff.splat.ply import read_points
@@ -102,6 +104,54 @@ def test_register_tiny_writes_model_and_points(registered_tiny):
     inside = (uv[:, 0] >= 0) & (uv[:, 0] < c.width) & (uv[:, 1] >= 0) & (uv[:, 1] < c.height)
     assert inside.sum() > 50  # the first camera sees a good part of the cloud
     assert not list(out.glob(".poses_work_*"))  # temporary folder cleaned up
+
+
+def _match_table(db: Path) -> dict[int, bytes]:
+    import sqlite3
+
+    con = sqlite3.connect(db)
+    try:
+        return {pid: data for pid, data in con.execute("SELECT pair_id, data FROM matches")}
+    finally:
+        con.close()
+
+
+def test_matching_in_worker_processes_equals_one_matcher_thread(synth_tiny_dir, tmp_path):
+    """The pairs dealt to two worker processes give exactly the matches one matcher thread gives
+    for all of them (the same pairs, the same order of matches), merged into the database."""
+    import pycolmap
+
+    names = [f"{s}/{i:03d}.png" for s in ("before", "after") for i in range(4)]
+    base = tmp_path / "base.db"
+    _extract(base, Path(synth_tiny_dir), names, PosesOptions(num_threads=1), single_camera=True)
+    one, split = tmp_path / "one.db", tmp_path / "split.db"
+    for db in (one, split):
+        shutil.copyfile(base, db)
+    pairs = all_pairs(base)
+    assert len(pairs) == 28 and set(map(frozenset, pairs)) == {
+        frozenset((a, b)) for i, a in enumerate(names) for b in names[i + 1:]}
+    mo = pycolmap.FeatureMatchingOptions()
+    mo.num_threads = 1
+    mo.skip_geometric_verification = True
+    po = pycolmap.ImportedPairingOptions()
+    (tmp_path / "pairs.txt").write_text("".join(f"{a} {b}\n" for a, b in pairs))
+    po.match_list_path = str(tmp_path / "pairs.txt")
+    pycolmap.match_image_pairs(one, matching_options=mo, pairing_options=po,
+                               device=pycolmap.Device.cpu)
+    work = tmp_path / "work"
+    work.mkdir()
+    assert match_in_processes(split, work, pairs, num_threads=2) == 2
+    expected, got = _match_table(one), _match_table(split)
+    assert len(expected) == 28 and sum(bool(d) for d in expected.values()) >= 8
+    assert got == expected
+    assert not list(work.glob("*.db"))  # the workers' copies are gone
+
+
+def test_a_failing_matching_worker_is_a_poses_error(tmp_path):
+    db = tmp_path / "broken.db"
+    db.write_bytes(b"this is no database")
+    with pytest.raises(PosesError, match="matching failed in a worker process"):
+        match_in_processes(db, tmp_path, [("a.png", "b.png")], num_threads=1)
 
 
 def test_refine_model_recovers_focal_and_removes_outliers(registered_tiny, gt_tiny):

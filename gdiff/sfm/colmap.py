@@ -14,6 +14,7 @@ import numpy as np
 from ..cameras import SET_TIME, SETS, Camera
 from ..errors import PosesError
 from .images import _check_unregistered, _count
+from .match import all_pairs, match_in_processes
 from .options import PosesOptions
 from .pairs import retrieval_pairs, sequential_pairs, word_histograms
 from .resample import shares_one_camera
@@ -77,14 +78,24 @@ def size_groups(names: list[str], sizes: dict[str, tuple[int, int]]
 def _match(db: Path, work: Path, opts: PosesOptions, pairs: list[tuple[str, str]] | None,
            pixel_scale: float = 1.0) -> None:
     """Exhaustive matching if ``pairs`` is None, else match exactly ``pairs``; two-view RANSAC
-    threshold ``2 * max_reproj_error`` extraction pixels (``pixel_scale`` full-res px each)."""
+    threshold ``2 * max_reproj_error`` extraction pixels (``pixel_scale`` full-res px each).
+    With ``repeatable`` the pairs are matched in worker processes on one thread each
+    (:mod:`gdiff.sfm.match`) and then verified on ``num_threads``."""
     import pycolmap
 
-    mo = pycolmap.FeatureMatchingOptions()
-    mo.num_threads = opts.num_threads  # each pair's RANSAC is seeded: same on any thread
     vo = pycolmap.TwoViewGeometryOptions()
     vo.ransac.random_seed = opts.seed
     vo.ransac.max_error = 2.0 * opts.max_reproj_error * pixel_scale
+    if opts.repeatable:
+        match_in_processes(db, work, all_pairs(db) if pairs is None else pairs,
+                           opts.num_threads, quiet=not opts.colmap_log)
+        go = pycolmap.GeometricVerifierOptions()
+        go.num_threads = opts.num_threads  # each pair's RANSAC is seeded: same on any thread
+        pycolmap.geometric_verification(db, verifier_options=go, two_view_geometry_options=vo)
+        _sort_pairs(db)
+        return
+    mo = pycolmap.FeatureMatchingOptions()
+    mo.num_threads = opts.num_threads
     if pairs is None:
         pycolmap.match_exhaustive(db, matching_options=mo, verification_options=vo,
                                   device=pycolmap.Device.cpu)

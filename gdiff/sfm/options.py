@@ -93,15 +93,18 @@ class PosesOptions:
         max_unregistered_fraction: if a set (before, after, eval_before, eval_after) loses more
             than this fraction of its images, the stage fails listing them; otherwise they are
             dropped with a warning.
-        num_threads: CPU threads for COLMAP's matching and verification always, and for its
-            other steps when ``repeatable`` is off (-1 = all).
+        num_threads: CPU threads (-1 = all) for COLMAP's matching (worker processes when
+            ``repeatable``, see :mod:`gdiff.sfm.match`) and verification always, and for its
+            other steps when ``repeatable`` is off.
         repeatable: run COLMAP's feature extraction, mapping and bundle adjustment on one
-            thread, so two runs on the same photos give byte-identical poses and points. With
-            several threads the extraction order decides COLMAP's image ids and the order of
-            sums in mapping moves the solution slightly; the fit then grows such differences.
-            Matching and verification run on ``num_threads`` either way: each pair's RANSAC is
-            seeded with ``seed``, so with the image ids fixed its result does not depend on the
-            thread that verifies it. Off = every step on ``num_threads``.
+            thread, and its matching in ``num_threads`` worker processes on one thread each,
+            so two runs on the same photos give byte-identical poses and points. With several
+            threads the extraction order decides COLMAP's image ids, the order of sums in
+            mapping moves the solution slightly, and matchers running at once in one process
+            now and then lose a pair's matches; the fit then grows such differences.
+            Verification runs on ``num_threads`` either way: each pair's RANSAC is seeded with
+            ``seed``, so with the image ids fixed its result does not depend on the thread that
+            verifies it. Off = every step on ``num_threads`` threads.
         seed: random seed of COLMAP's RANSAC and mapper (for repeatable runs).
         colmap_log: let COLMAP write its own INFO log lines to stderr.
     """

@@ -44,7 +44,10 @@ the scene extent (camera spread); a Gaussian's mean view-space gradient is taken
 of the times at which it exists (opacity above ``prune_opacity``), so Gaussians of an object
 seen at one time only grow as readily as the others; pruning keeps a Gaussian that is opaque at
 any time. Growth stops at ``max_gaussians`` (the cost of a step is about linear in the number
-of Gaussians). Opacities are reset every ``opacity_reset_every``. The SH
+of Gaussians). Opacities are reset every ``opacity_reset_every``; for ``reset_hold`` iterations
+after a reset the deformation field is held (learning rates 0): the darkened image otherwise
+drives its shared opacity and scale outputs up for every Gaussian at once, and the field can
+run away until the fit diverges or prunes most Gaussians at the next refine. The SH
 degree rises by one every ``sh_degree_interval`` iterations up to ``sh_degree``. The position
 learning rate decays exponentially over the whole run, the deformation's over the fine phase.
 
@@ -144,6 +147,7 @@ class FitOptions:
     densify_until: int = 1000
     densify_every: int = 100
     opacity_reset_every: int = 600  # 0 = never
+    reset_hold: int = 100  # iterations after an opacity reset with the deformation field held
     grow_grad2d: float = 0.0002
     grow_scale3d: float = 0.01  # x extent
     prune_opacity: float = 0.005
@@ -180,7 +184,7 @@ class FitOptions:
             raise ValueError(f"coarse_downscale must be >= 1, got {self.coarse_downscale}")
         for name in ("coarse_iters", "fine_iters", "max_side", "densify_every", "log_every",
                      "checkpoint_every", "sh_degree_interval", "max_gaussians",
-                     "opacity_reset_every", "time_min_views"):
+                     "opacity_reset_every", "reset_hold", "time_min_views"):
             if getattr(self, name) < 0:
                 raise ValueError(f"{name} must be >= 0, got {getattr(self, name)}")
         if self.coarse_iters + self.fine_iters < 1:
@@ -358,15 +362,28 @@ class Trainer:
     def _set_lrs(self, it: int) -> None:
         o = self.opts
         fine_step = it - o.coarse_iters
+        held = self.deformation_held(it)
         for g in self.optimizer.param_groups:
             if g["name"] == "means":
                 g["lr"] = _exp_lr(it, o.total_iters, o.lr_means * self.extent,
                                   o.lr_means_final * self.extent)
             elif g["name"] == "grid":
-                g["lr"] = _exp_lr(fine_step, o.fine_iters, o.lr_grid, o.lr_grid_final)
+                g["lr"] = 0.0 if held else _exp_lr(fine_step, o.fine_iters, o.lr_grid,
+                                                   o.lr_grid_final)
             elif g["name"] == "deform":
-                g["lr"] = _exp_lr(fine_step, o.fine_iters, o.lr_deform * self.extent,
-                                  o.lr_deform_final * self.extent)
+                g["lr"] = 0.0 if held else _exp_lr(fine_step, o.fine_iters,
+                                                   o.lr_deform * self.extent,
+                                                   o.lr_deform_final * self.extent)
+
+    def deformation_held(self, it: int) -> bool:
+        """Whether iteration ``it`` (0-based, the one about to run) lies within ``reset_hold``
+        iterations after an opacity reset (which follows the iteration that completes a
+        multiple of ``opacity_reset_every`` below ``densify_until``)."""
+        o = self.opts
+        if not o.opacity_reset_every or o.reset_hold <= 0 or it < o.opacity_reset_every:
+            return False
+        last = it // o.opacity_reset_every * o.opacity_reset_every
+        return last < o.densify_until and it - last < o.reset_hold
 
     # ---------------------------------------------------------------- phases
     def phase(self, it: int | None = None) -> str:

@@ -287,6 +287,30 @@ def test_fit_that_prunes_every_gaussian_stops_with_a_training_error(scene, tmp_p
     assert not (tmp_path / "o" / "model.pt").exists()
 
 
+@pytest.mark.parametrize("hold", [15, 0])
+def test_deformation_field_is_held_after_an_opacity_reset(scene, tmp_path, hold):
+    """For ``reset_hold`` iterations after the opacity reset (after iteration 40) the
+    deformation field does not move; before and after that window it learns (and without a
+    hold it moves inside the window too)."""
+    opts = small_options(coarse_iters=20, fine_iters=45, densify_from=10, densify_every=10,
+                         densify_until=60, opacity_reset_every=40, reset_hold=hold,
+                         checkpoint_every=0)
+    snaps = {}
+
+    def snap(trainer):
+        with torch.no_grad():
+            snaps[trainer.iteration] = torch.cat(
+                [p.detach().flatten().clone() for p in trainer.model.deformation.parameters()])
+
+    fit_scene(scene.dir, scene.cameras, scene.points, tmp_path / "o", opts, "cpu",
+              callback=snap)
+    moved = {d: not torch.equal(snaps[d], snaps[d - 1]) for d in range(22, 66)}
+    assert moved[39] and moved[40]  # learning up to the reset (done 40)
+    inside = [moved[d] for d in range(41, 56)]  # steps 40..54, right after the reset
+    assert not any(inside) if hold else all(inside)
+    assert moved[56] and moved[60]  # and again after the hold
+
+
 def test_inputs_without_after_images_are_rejected(scene, tmp_path):
     cams = [c for c in load_cameras(scene.cameras) if c.set == "before"]
     save_cameras(tmp_path / "c.json", cams)

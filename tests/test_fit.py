@@ -5,6 +5,7 @@ test helper: the workflow's points come from the poses stage).
 """
 
 import dataclasses
+import re
 import shutil
 from types import SimpleNamespace
 
@@ -266,6 +267,31 @@ def test_divergence_raises_training_error_naming_iteration_and_checkpoint(scene,
     with pytest.raises(TrainingError, match=r"iteration 26.*ckpt.*last\.pt.*iteration 20"):
         fit_scene(scene.dir, scene.cameras, scene.points, tmp_path / "o", opts, "cpu",
                   callback=poison)
+
+
+def test_divergence_after_an_opacity_reset_names_the_hold(scene, tmp_path):
+    """A fit that diverges after the opacity reset (at iteration 20, in the fine phase) names
+    the reset and fit.reset_hold; with a hold set, or before the reset, it does not."""
+    def poison_at(n):
+        def poison(trainer):
+            if trainer.iteration == n:
+                with torch.no_grad():
+                    trainer.model.splats["sh0"].fill_(float("nan"))
+        return poison
+
+    def message(hold, n):
+        opts = small_options(coarse_iters=10, fine_iters=20, checkpoint_every=0,
+                             densify_from=5, densify_every=5, densify_until=30,
+                             opacity_reset_every=20, reset_hold=hold)
+        with pytest.raises(TrainingError) as e:
+            fit_scene(scene.dir, scene.cameras, scene.points, tmp_path / f"o{hold}_{n}", opts,
+                      "cpu", callback=poison_at(n))
+        return str(e.value)
+
+    assert re.search(r"iteration 26.*opacity reset at iteration 20.*fit\.reset_hold: 100",
+                     message(0, 25))
+    assert "reset_hold" not in message(0, 15)  # before the reset
+    assert "reset_hold" not in message(5, 25)  # already held
 
 
 def test_fit_that_prunes_every_gaussian_stops_with_a_training_error(scene, tmp_path):

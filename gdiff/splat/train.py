@@ -45,9 +45,11 @@ of the times at which it exists (opacity above ``prune_opacity``), so Gaussians 
 seen at one time only grow as readily as the others; pruning keeps a Gaussian that is opaque at
 any time. Growth stops at ``max_gaussians`` (the cost of a step is about linear in the number
 of Gaussians). Opacities are reset every ``opacity_reset_every``; for ``reset_hold`` iterations
-after a reset the deformation field is held (learning rates 0): the darkened image otherwise
-drives its shared opacity and scale outputs up for every Gaussian at once, and the field can
-run away until the fit diverges or prunes most Gaussians at the next refine. The SH
+after a reset the deformation field can be held (learning rates 0): the darkened image drives
+its shared opacity and scale outputs up for every Gaussian at once, and at some seeds the field
+runs away until the fit diverges or prunes most Gaussians at the next refine. The hold is off
+by default (it also costs the change maps a little); a fit that diverges after a reset says
+so and names it. The SH
 degree rises by one every ``sh_degree_interval`` iterations up to ``sh_degree``. The position
 learning rate decays exponentially over the whole run, the deformation's over the fine phase.
 
@@ -147,7 +149,7 @@ class FitOptions:
     densify_until: int = 1000
     densify_every: int = 100
     opacity_reset_every: int = 600  # 0 = never
-    reset_hold: int = 100  # iterations after an opacity reset with the deformation field held
+    reset_hold: int = 0  # iterations after an opacity reset with the deformation field held
     grow_grad2d: float = 0.0002
     grow_scale3d: float = 0.01  # x extent
     prune_opacity: float = 0.005
@@ -598,6 +600,19 @@ def evaluate_views(model: GaussianModel4D, views: list[TrainView], backend: str 
 # ------------------------------------------------------------------------------ entry point
 
 
+def _after_reset_hint(opts: FitOptions, it: int) -> str:
+    """What to try when the fit failed at iteration ``it`` after an opacity reset in the fine
+    phase without a hold of the deformation field ("" otherwise)."""
+    r = opts.opacity_reset_every
+    if not r or opts.reset_hold > 0 or it < r:
+        return ""
+    last = min(it // r * r, (opts.densify_until - 1) // r * r)
+    if last < r or last < opts.coarse_iters or not opts.deform:  # no field learnt then
+        return ""
+    return (f"; this followed the opacity reset at iteration {last}: set fit.reset_hold: 100 "
+            "(the deformation field is held while the opacities recover) and re-run")
+
+
 def fit_scene(scene_dir: str | Path, cameras_json: str | Path, points_ply: str | Path,
               out_dir: str | Path, options: FitOptions | None = None, device="auto",
               callback: Callable[[Trainer], None] | None = None) -> dict:
@@ -680,7 +695,8 @@ def fit_scene(scene_dir: str | Path, cameras_json: str | Path, points_ply: str |
                          "learning rates in config 'fit' or delete the checkpoint to restart"
                          if last_ckpt else "no checkpoint was written yet")
                 raise TrainingError(f"fit diverged at iteration {trainer.iteration + 1} ({e}); "
-                                    f"{where}") from None
+                                    f"{where}{_after_reset_hint(opts, trainer.iteration)}"
+                                    ) from None
             trainer.elapsed = time.time() - t_start
             it = rec["iteration"]
             if rec["n_gaussians"] == 0:
@@ -688,7 +704,8 @@ def fit_scene(scene_dir: str | Path, cameras_json: str | Path, points_ply: str |
                     f"fit collapsed at iteration {it}: the refine step pruned every Gaussian "
                     f"(opacity under prune_opacity = {opts.prune_opacity}, e.g. not yet "
                     "recovered from the opacity reset); the checkpoints replay the same run: "
-                    "set another fit.seed, or fit.opacity_reset_every: 0, and re-run")
+                    "set another fit.seed, or fit.opacity_reset_every: 0, and re-run"
+                    + _after_reset_hint(opts, it))
             if "densify" in rec:
                 log.debug("iteration %d: densify %s", it, rec["densify"])
             if opts.log_every and (it % opts.log_every == 0 or it == total):

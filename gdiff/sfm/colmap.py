@@ -92,21 +92,26 @@ def _match(db: Path, work: Path, opts: PosesOptions, pairs: list[tuple[str, str]
         go = pycolmap.GeometricVerifierOptions()
         go.num_threads = opts.num_threads  # each pair's RANSAC is seeded: same on any thread
         pycolmap.geometric_verification(db, verifier_options=go, two_view_geometry_options=vo)
-        _sort_pairs(db)
-        return
-    mo = pycolmap.FeatureMatchingOptions()
-    mo.num_threads = opts.num_threads
-    if pairs is None:
-        pycolmap.match_exhaustive(db, matching_options=mo, verification_options=vo,
+    elif pairs is None:
+        pycolmap.match_exhaustive(db, matching_options=_threads(opts), verification_options=vo,
                                   device=pycolmap.Device.cpu)
     else:
         pair_file = work / "pairs.txt"
         pair_file.write_text("".join(f"{a} {b}\n" for a, b in pairs))
         po = pycolmap.ImportedPairingOptions()
         po.match_list_path = str(pair_file)
-        pycolmap.match_image_pairs(db, matching_options=mo, pairing_options=po,
+        pycolmap.match_image_pairs(db, matching_options=_threads(opts), pairing_options=po,
                                    verification_options=vo, device=pycolmap.Device.cpu)
     _sort_pairs(db)
+
+
+def _threads(opts: PosesOptions):
+    """COLMAP matching options on ``num_threads`` threads of this process."""
+    import pycolmap
+
+    mo = pycolmap.FeatureMatchingOptions()
+    mo.num_threads = opts.num_threads
+    return mo
 
 
 def _sort_pairs(db: Path) -> None:

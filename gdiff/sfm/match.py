@@ -3,11 +3,11 @@
 COLMAP's CPU matcher (pycolmap 4.2) now and then loses matches when two matchers run at once in
 one process: a run on two threads may leave a pair or two with fewer matches or none, and the
 poses move. Two matchers on separate databases in two threads of one process do it too, so the
-shared state is inside the library; one matcher thread gives the same matches every time. So, for repeatable runs, the pairs are split among worker
-*processes* that each match their share on one thread into their own copy of the database
-(:func:`match_in_processes`); the matches are merged into the database, and the geometric
-verification (whose RANSAC is seeded per pair, and which gives the same result on any number
-of threads) runs once over all of them.
+shared state is inside the library; one matcher thread gives the same matches every time. So,
+for repeatable runs, the pairs are split among worker *processes* that each match their share
+on one thread into their own copy of the database (:func:`match_in_processes`); the matches
+are merged into the database, and the geometric verification (whose RANSAC is seeded per pair,
+and which gives the same result on any number of threads) runs once over all of them.
 
 Run as ``python -m gdiff.sfm.match DATABASE PAIRS_FILE`` it is one such worker.
 """
@@ -54,9 +54,10 @@ def match_in_processes(db: Path, work: Path, pairs: list[tuple[str, str]],
     Raises:
         PosesError: a worker failed (its last output lines are in the message).
     """
-    n = worker_count(num_threads, len(pairs))
     if not pairs:
         return 0
+    n = worker_count(num_threads, len(pairs))
+    env = dict(os.environ, GDIFF_COLMAP_QUIET="1" if quiet else "0")
     jobs = []
     try:
         for k in range(n):
@@ -65,10 +66,13 @@ def match_in_processes(db: Path, work: Path, pairs: list[tuple[str, str]],
             shutil.copyfile(db, part_db)
             part_pairs.write_text("".join(f"{a} {b}\n" for a, b in pairs[k::n]))
             err = open(work / f"match_part{k}.log", "w+b")
-            env = dict(os.environ, GDIFF_COLMAP_QUIET="1" if quiet else "0")
-            proc = subprocess.Popen([sys.executable, "-m", __name__, str(part_db),
-                                     str(part_pairs)], stdout=err, stderr=subprocess.STDOUT,
-                                    env=env)
+            try:
+                proc = subprocess.Popen([sys.executable, "-m", __name__, str(part_db),
+                                         str(part_pairs)], stdout=err,
+                                        stderr=subprocess.STDOUT, env=env)
+            except BaseException:
+                err.close()
+                raise
             jobs.append((proc, err, part_db))
         for proc, err, _ in jobs:
             if proc.wait() != 0:

@@ -181,6 +181,16 @@ class FitOptions:
     log_every: int = 10
     backend: str = "auto"  # rasterizer backend: auto | torch | cpp | gsplat
 
+    def last_opacity_reset(self, it: int) -> int | None:
+        """The latest opacity reset at or before iteration count ``it``, or None: a reset
+        follows each iteration count that is a multiple of ``opacity_reset_every`` and below
+        ``densify_until``."""
+        r = self.opacity_reset_every
+        if r <= 0:
+            return None
+        last = min(it, self.densify_until - 1) // r * r
+        return last if last >= r else None
+
     def __post_init__(self):
         if self.coarse_downscale < 1:
             raise ValueError(f"coarse_downscale must be >= 1, got {self.coarse_downscale}")
@@ -379,13 +389,9 @@ class Trainer:
 
     def deformation_held(self, it: int) -> bool:
         """Whether iteration ``it`` (0-based, the one about to run) lies within ``reset_hold``
-        iterations after an opacity reset (which follows the iteration that completes a
-        multiple of ``opacity_reset_every`` below ``densify_until``)."""
-        o = self.opts
-        if not o.opacity_reset_every or o.reset_hold <= 0 or it < o.opacity_reset_every:
-            return False
-        last = it // o.opacity_reset_every * o.opacity_reset_every
-        return last < o.densify_until and it - last < o.reset_hold
+        iterations after an opacity reset (:meth:`FitOptions.last_opacity_reset`)."""
+        last = self.opts.last_opacity_reset(it)
+        return last is not None and it - last < self.opts.reset_hold
 
     # ---------------------------------------------------------------- phases
     def phase(self, it: int | None = None) -> str:
@@ -508,7 +514,7 @@ class Trainer:
             event = refine(m.splats, self.optimizer, self.stats, o.thresholds(), self.extent,
                            self.effective_opacity_scale,
                            prune_large=o.opacity_reset_every > 0 and done > o.opacity_reset_every)
-        if o.opacity_reset_every and done % o.opacity_reset_every == 0 and done < o.densify_until:
+        if o.last_opacity_reset(done) == done:
             reset_opacity(m.splats, self.optimizer, 2.0 * o.prune_opacity)
         out = {"iteration": done, "phase": self.phase(it), "loss": float(loss.detach()),
                "l1": float(loss_l1.detach()), "ssim": 1.0 - float(loss_ssim.detach()),
@@ -603,12 +609,9 @@ def evaluate_views(model: GaussianModel4D, views: list[TrainView], backend: str 
 def _after_reset_hint(opts: FitOptions, it: int) -> str:
     """What to try when the fit failed at iteration ``it`` after an opacity reset in the fine
     phase without a hold of the deformation field ("" otherwise)."""
-    r = opts.opacity_reset_every
-    if not r or opts.reset_hold > 0 or it < r:
-        return ""
-    last = min(it // r * r, (opts.densify_until - 1) // r * r)
-    if last < r or last < opts.coarse_iters or not opts.deform:  # no field learnt then
-        return ""
+    last = opts.last_opacity_reset(it)
+    if last is None or opts.reset_hold > 0 or last < opts.coarse_iters or not opts.deform:
+        return ""  # no reset, already held, or no field learnt then
     return (f"; this followed the opacity reset at iteration {last}: set fit.reset_hold: 100 "
             "(the deformation field is held while the opacities recover) and re-run")
 

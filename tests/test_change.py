@@ -1195,3 +1195,51 @@ def test_foot_of_an_added_object_at_its_support_depth_is_kept_and_its_shadow_is_
         assert (m1 & box[i]).sum() > 0.75 * box[i].sum(), i
         assert (m1 & foot[i]).sum() > 0.5 * foot[i].sum(), (i, (m1 & foot[i]).sum())
         assert (m1 & shadow[i]).sum() <= 0.25 * shadow[i].sum(), i
+
+
+def test_object_replaced_in_place_by_one_that_hides_it_is_a_change(caplog):
+    """A flat ring lies on the floor at t0; at t1 a ball stands where it lay. From every pose
+    the ball hides the ring's middle; the rim left over shows the floor at t1 at a depth only
+    2 % farther, within the depth tolerance, so no pose confirms the ring. Never seen at t1
+    and hidden there by the ball (a change of t1) at every pose, it was replaced. An object
+    that still stands behind a newcomer keeps its ID where it is not hidden, and a floor patch
+    re-segmented at t1 with nothing in front of it stays unchanged."""
+    cam = _plane_camera(0.0)
+    ids, frames = {}, {}
+    for i in range(3):
+        ids0, z0 = _blank()
+        ids1, z1 = _blank()
+        ids0[:], ids1[:] = 1, 1  # the floor at depth 5
+        ids0[12:28, 8 + i:24 + i] = 5  # the ring at t0, 0.1 above the floor
+        z0[12:28, 8 + i:24 + i] = 4.9
+        ids1[15:26, 10 + i:22 + i] = 7  # the ball at t1, in front of the ring's middle
+        z1[15:26, 10 + i:22 + i] = 4.0
+        ids0[5:35, 40:50] = ids1[5:35, 40:50] = 3  # a box that stays ...
+        z0[5:35, 40:50] = z1[5:35, 40:50] = 4.5
+        ids1[5:20, 38:52] = 8  # ... with a new object in front of its top at t1
+        z1[5:20, 38:52] = 3.5
+        ids0[30:38, 5:15] = 6  # a floor patch segmented apart at t0 only
+        for t, (m, z) in enumerate(((ids0, z0), (ids1, z1))):
+            ids[("p1", f"t{t}", i)] = m
+            frames[("p1", f"t{t}", i)] = dict(depth=z, camera=cam)
+    o = CompareOptions(min_area=4, geometry=False, flat=False)
+    with caplog.at_level("INFO", logger="gdiff.compare"):
+        masks, df = compare_paths(ids, frames, o)
+    df = df.set_index("id")
+    assert df.loc[7, "changed"] and df.loc[7, "type"] == "added"
+    assert df.loc[8, "changed"] and df.loc[8, "type"] == "added"
+    assert df.loc[5, "n_confirmed"] == 0  # no pose could confirm the ring by itself
+    assert df.loc[5, "changed"] and df.loc[5, "type"] == "removed" and df.loc[5, "partner"] == 7
+    assert df.loc[5, "instance"] == 5
+    assert not df.loc[3, "changed"] and not df.loc[6, "changed"]
+    assert "replaced: 1 IDs" in caplog.text and "5 by 7" in caplog.text
+    cand = df.attrs["candidates"].set_index("instance")
+    assert cand.loc[5, "verdict"] == "kept: replaced by 7"
+    m0, m1 = masks[("p1", 1)]
+    assert m0[12:28, 9:25].all() and not m0[30:38, 5:15].any() and not m0[5:35, 40:50].any()
+    # without the ball the ring's rim alone decides: unchanged
+    for i in range(3):
+        ids[("p1", "t1", i)][ids[("p1", "t1", i)] == 7] = 1
+        frames[("p1", "t1", i)]["depth"][15:26, 10 + i:22 + i] = 5.0
+    _, df = compare_paths(ids, frames, o)
+    assert not df.set_index("id").loc[5, "changed"]

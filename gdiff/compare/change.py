@@ -26,6 +26,9 @@ For every pose of a path the ID maps at t=0 and t=1 (one shared ID space, see
   its thickness is below any depth threshold, so its texture and colour decide;
 * per ID, over all poses where it is visible (and judged), the share of confirmed candidates
   decides (``vote_frac``): changed IDs are changed on every frame (temporal consistency);
+* an ID seen at one time only that a change of the other time hides in part at most of its
+  poses was replaced in place by it (:func:`replaced`: its leftover rim is too thin for the
+  depth test, and an object still standing behind a newcomer would show at the other time);
 * a changed ID is ``removed`` (seen at t0 only), ``added`` (t1 only) or ``moved`` (seen at both
   at different places, or a removed/added pair with the same appearance and size standing at
   different places - a removed/added pair at one place is a replacement and keeps its types).
@@ -54,6 +57,10 @@ from ..track import (TrackFrame, TrackOptions, labels_from_instances, link_group
 log = logging.getLogger("gdiff.compare")
 
 CHANGE_TYPES = ("added", "removed", "moved")
+
+# share of a candidate's region hidden at the other time behind a nearer surface from which it
+# counts as disoccluded (its texture not trusted) and, by one changed ID, as replaced by it
+HIDDEN_SHARE = 0.25
 
 
 @dataclass
@@ -343,7 +350,10 @@ def pose_stats(ids0: np.ndarray, ids1: np.ndarray, o: CompareOptions,
     ``confirmed``, ``hist`` (chromaticity histogram, for moved pairing), ``size`` (metric size
     sqrt(area) * z / f when depth and ``focal`` are known, else sqrt(area) in pixels) and
     ``pos`` (median world point [3] with depth and ``camera``, else the mask centroid in
-    pixels; same units as ``size``) and ``observed`` (the ID can be judged at this pose).
+    pixels; same units as ``size``), ``observed`` (the ID can be judged at this pose) and,
+    for a candidate absent at the other time, ``hidden_by`` / ``hidden``: the ID of the other
+    time that hides most of its region there behind a nearer surface, and the share of the
+    region it hides (0 / 0.0 when nothing does; with depth only).
 
     A candidate is confirmed when its depth changed (``evidence >= min_evidence``) or its
     texture differs between the times (``similarity < same_similarity``); without depth an
@@ -475,6 +485,7 @@ def pose_stats(ids0: np.ndarray, ids1: np.ndarray, o: CompareOptions,
                 region0, region1 = region0 & visible, region1 & visible
         evidence, sim, confirmed = float("nan"), float("nan"), bool(cand)
         disoccluded = False
+        hidden_by, hidden = 0, 0.0
         if cand and (has_depth or has_rgb):
             region = region0 | region1
             if has_depth:
@@ -483,12 +494,21 @@ def pose_stats(ids0: np.ndarray, ids1: np.ndarray, o: CompareOptions,
                 near1, near0 = nearer()
                 region = (region0 & ~(near1 & trusted)) | (region1 & ~(near0 & trusted))
                 full = (region0 | region1).sum()
+                if full and not (a0 and a1):  # absent at the other time: what hides it there
+                    other = ids1 if a0 else ids0
+                    behind = (region0 & near1 & trusted) | (region1 & near0 & trusted)
+                    cover = other[behind]
+                    cover = cover[cover != 0]
+                    if cover.size:
+                        vals, counts = np.unique(cover, return_counts=True)
+                        k = int(np.argmax(counts))
+                        hidden_by, hidden = int(vals[k]), float(counts[k] / full)
                 if region.sum() < 0.25 * full:
                     cand = confirmed = False  # mostly hidden at the other time: undecidable
                 # partly hidden: a surface revealed (or covered) by something that moved; next
                 # to the occluder's outline the two images show different things anyway, so
                 # only the depth can tell whether this instance itself changed
-                disoccluded = region.sum() < 0.75 * full
+                disoccluded = region.sum() < (1 - HIDDEN_SHARE) * full
             if cand and has_depth:
                 depth_region = region & trusted
                 evidence = (float(ev_depth()[depth_region].mean()) if depth_region.any()
@@ -524,7 +544,8 @@ def pose_stats(ids0: np.ndarray, ids1: np.ndarray, o: CompareOptions,
                 rgb0, rgb1, region, m0 | m1,
                 max(2, int(round(o.surround_width * max(ids0.shape)))), o.min_area)
         rec = dict(area0=a0, area1=a1, candidate=bool(cand), evidence=evidence,
-                   similarity=sim, confirmed=confirmed, observed=seen, surround=surround)
+                   similarity=sim, confirmed=confirmed, observed=seen, surround=surround,
+                   hidden_by=hidden_by, hidden=hidden)
         time = 0 if a0 else 1
         rgb, m, z = (rgb0, c0, depth0) if a0 else (rgb1, c1, depth1)
         if rgb is not None:
@@ -669,7 +690,7 @@ def decide(stats: list[tuple[object, dict[int, dict]]], o: CompareOptions) -> pd
     """
     acc: dict[int, dict] = defaultdict(lambda: dict(n0=0, n1=0, n=0, conf=0, poses=[],
                                                     area=[], hist=None, size=[], pos={},
-                                                    surround=[]))
+                                                    surround=[], hiders=defaultdict(int)))
     for name, st in stats:
         for t, r in st.items():
             if not r.get("observed", True):
@@ -679,6 +700,8 @@ def decide(stats: list[tuple[object, dict[int, dict]]], o: CompareOptions) -> pd
             a["n0"] += r["area0"] > 0
             a["n1"] += r["area1"] > 0
             a["conf"] += r["confirmed"]
+            if r.get("hidden", 0.0) >= HIDDEN_SHARE:
+                a["hiders"][r["hidden_by"]] += 1
             a["poses"].append(name)
             a["area"].append(max(r["area0"], r["area1"]))
             a["size"].append(r["size"])
@@ -710,6 +733,7 @@ def decide(stats: list[tuple[object, dict[int, dict]]], o: CompareOptions) -> pd
                                      "n_confirmed", "first", "last", "area", "colour",
                                      "n_colour", "_hist", "_size", "_pos"])
     df["changed"] = df["changed"].astype(bool)  # also when empty: a mask, not column labels
+    df.attrs["hidden_by"] = {t: dict(a["hiders"]) for t, a in acc.items() if a["hiders"]}
     _pair_moved(df, o)
     _group_instances(df)
     world = [p if p is not None and len(p[0]) == 3 else None for p in df["_pos"]]
@@ -717,6 +741,43 @@ def decide(stats: list[tuple[object, dict[int, dict]]], o: CompareOptions) -> pd
         df[c] = [float(p[0][k]) if p is not None else np.nan for p in world]
     df["size"] = [float(p[1]) if p is not None else np.nan for p in world]
     return df.drop(columns=["_hist", "_size", "_pos"])
+
+
+def replaced(df: pd.DataFrame, o: CompareOptions) -> list[int]:
+    """Mark the objects that a change of the other time now stands in front of (in place):
+    returns the IDs newly marked changed.
+
+    Where a new object stands in front of an old one, :func:`pose_stats` leaves out the pixels
+    of the old one that it hides (the old object may still stand behind it), and with a
+    quarter or more hidden does not trust its texture either. When the new object replaced the
+    old one in place (a sphere put where a ring lay), that leaves only a thin rim of the old
+    object to judge, whose depth barely differs from the floor now seen there: the old
+    object is never confirmed. It differs from an object that still stands behind the
+    newcomer in that it is seen at the other time at none of its poses. So an unchanged ID
+    that is absent at the other time at every pose where it was judged (and judged at >= 2)
+    is changed (``removed`` or ``added``, ``partner`` the newcomer) when at least
+    ``vote_frac`` of those poses had at least :data:`HIDDEN_SHARE` of its region hidden at the
+    other time by one and the same ID that is a change of the other type, after the 3D and
+    colour confirmation (``df.attrs["hidden_by"]``, from :func:`decide`). Its ``instance`` is
+    its own ID."""
+    hidden_by = df.attrs.get("hidden_by", {})
+    kind = dict(zip(df.loc[df["changed"], "id"].astype(int), df.loc[df["changed"], "type"]))
+    marked = []
+    for i in df.index[~df["changed"]]:
+        t = int(df.at[i, "id"])
+        n0, n1 = int(df.at[i, "n_t0"]), int(df.at[i, "n_t1"])
+        if t not in hidden_by or (n0 > 0) == (n1 > 0) or n0 + n1 < 2:
+            continue
+        typ, other = ("removed", "added") if n0 else ("added", "removed")
+        votes = {h: c for h, c in hidden_by[t].items() if kind.get(h) == other}
+        if not votes:
+            continue
+        h = max(votes, key=votes.get)
+        if votes[h] >= o.vote_frac * (n0 + n1):
+            df.at[i, "changed"], df.at[i, "type"] = True, typ
+            df.at[i, "partner"], df.at[i, "instance"] = h, t
+            marked.append(t)
+    return marked
 
 
 def _group_instances(df: pd.DataFrame) -> None:

@@ -30,7 +30,8 @@ from ..io import read_ids, read_json, write_csv, write_mask
 from ..log import progress
 from ..parallel import ordered_map
 from ..track import world_points
-from .change import CompareOptions, appearance_change, change_masks, decide, pose_stats
+from .change import (HIDDEN_SHARE, CompareOptions, appearance_change, change_masks, decide,
+                     pose_stats, replaced)
 from .coverage import DepthView, observed, surface
 from .geometry import (GeometryEvidence, flat_flags, pose_flags, pose_record,
                        write_evidence)
@@ -205,6 +206,7 @@ def compare_paths(ids: dict[Key, np.ndarray], frames: dict[Key, dict] | None,
             _confirm_by_evidence(df, o, band, light_changed)
     else:
         df["support"] = np.nan
+    _replaced(df, o)
     changed = df.loc[df["changed"], "id"].tolist()
     masks = {(p, i): change_masks(ids[(p, "t0", i)], ids[(p, "t1", i)], changed)
              for p, i in poses}
@@ -335,6 +337,33 @@ def _confirm_by_evidence(df: pd.DataFrame, o: CompareOptions, band: int,
     df.loc[drop, "changed"] = False
     df.loc[drop, "type"] = ""
     df.loc[drop, "instance"] = 0
+
+
+def _replaced(df: pd.DataFrame, o: CompareOptions) -> None:
+    """Mark the objects replaced in place by a change (:func:`gdiff.compare.change.replaced`),
+    log them and list them in ``df.attrs["candidates"]`` with the verdict ``kept: replaced by
+    <ID>``."""
+    marked = replaced(df, o)
+    if not marked:
+        return
+    rows = []
+    for t in marked:
+        r = df.loc[df["id"] == t].iloc[0]
+        rows.append(dict(instance=t, ids=str(t), types=r["type"], n_t0=int(r["n_t0"]),
+                         n_t1=int(r["n_t1"]), n_confirmed=int(r["n_confirmed"]),
+                         area=float(r["area"]), **{c: float(r[c]) for c in ("x", "y", "z", "size")},
+                         support=float(r["support"]),
+                         colour=float(r["colour"]),
+                         verdict=f"kept: replaced by {int(r['partner'])}"))
+    cand = df.attrs.get("candidates")
+    new = pd.DataFrame(rows, columns=CANDIDATE_COLUMNS)
+    df.attrs["candidates"] = new if cand is None or cand.empty else pd.concat(
+        [cand, new], ignore_index=True)
+    log.info("replaced: %d IDs never seen at the other time, where a change of that time hides "
+             "at least %.0f %% of them at >= %.0f %% of their poses, are changes too (%s)",
+             len(marked), 100 * HIDDEN_SHARE, 100 * o.vote_frac,
+             ", ".join(f"{t} by {int(df.loc[df['id'] == t, 'partner'].iloc[0])}"
+                       for t in marked))
 
 
 def _add_evidence(masks, ev: GeometryEvidence, leave_out: np.ndarray | None = None) -> int:

@@ -1202,8 +1202,9 @@ def test_object_replaced_in_place_by_one_that_hides_it_is_a_change(caplog):
     the ball hides the ring's middle; the rim left over shows the floor at t1 at a depth only
     2 % farther, within the depth tolerance, so no pose confirms the ring. Never seen at t1
     and hidden there by the ball (a change of t1) at every pose, it was replaced. An object
-    that still stands behind a newcomer keeps its ID where it is not hidden, and a floor patch
-    re-segmented at t1 with nothing in front of it stays unchanged."""
+    that still stands behind a newcomer keeps its ID where it is not hidden; one that a change
+    of light gave another ID at t1 shows that ID, of its own footprint, there; and a floor
+    patch re-segmented at t1 with nothing in front of it stays unchanged."""
     cam = _plane_camera(0.0)
     ids, frames = {}, {}
     for i in range(3):
@@ -1219,6 +1220,9 @@ def test_object_replaced_in_place_by_one_that_hides_it_is_a_change(caplog):
         ids1[5:20, 38:52] = 8  # ... with a new object in front of its top at t1
         z1[5:20, 38:52] = 3.5
         ids0[30:38, 5:15] = 6  # a floor patch segmented apart at t0 only
+        ids0[2:12, 28:36], z0[2:12, 28:36] = 9, 4.5  # a box the light change made ...
+        ids1[2:12, 28:36], z1[2:12, 28:36] = 10, 4.5  # ... unrecognisable at t1 (ID 10)
+        ids1[2:6, 27:37], z1[2:6, 27:37] = 8, 3.5  # the new object hides its top too
         for t, (m, z) in enumerate(((ids0, z0), (ids1, z1))):
             ids[("p1", f"t{t}", i)] = m
             frames[("p1", f"t{t}", i)] = dict(depth=z, camera=cam)
@@ -1232,6 +1236,7 @@ def test_object_replaced_in_place_by_one_that_hides_it_is_a_change(caplog):
     assert df.loc[5, "changed"] and df.loc[5, "type"] == "removed" and df.loc[5, "partner"] == 7
     assert df.loc[5, "instance"] == 5
     assert not df.loc[3, "changed"] and not df.loc[6, "changed"]
+    assert not df.loc[9, "changed"]  # its other look shows where it is not hidden
     assert "replaced: 1 IDs" in caplog.text and "5 by 7" in caplog.text
     cand = df.attrs["candidates"].set_index("instance")
     assert cand.loc[5, "verdict"] == "kept: replaced by 7"

@@ -353,7 +353,8 @@ def pose_stats(ids0: np.ndarray, ids1: np.ndarray, o: CompareOptions,
     pixels; same units as ``size``), ``observed`` (the ID can be judged at this pose) and,
     for a candidate absent at the other time, ``hidden_by`` / ``hidden``: the ID of the other
     time that hides most of its region there behind a nearer surface, and the share of the
-    region it hides (0 / 0.0 when nothing does; with depth only).
+    region it hides (0 / 0.0 when nothing does, or when the rest of the region shows at the
+    other time an ID of its own footprint, :func:`_swapped`: its other look; with depth only).
 
     A candidate is confirmed when its depth changed (``evidence >= min_evidence``) or its
     texture differs between the times (``similarity < same_similarity``); without depth an
@@ -499,7 +500,10 @@ def pose_stats(ids0: np.ndarray, ids1: np.ndarray, o: CompareOptions,
                     behind = (region0 & near1 & trusted) | (region1 & near0 & trusted)
                     cover = other[behind]
                     cover = cover[cover != 0]
-                    if cover.size:
+                    # an ID of the same footprint where it is not hidden is its own other
+                    # look (relit, tracked apart), not what it left behind
+                    if cover.size and not _swapped(ids0, ids1, t, region0 & region,
+                                                   region1 & region, o):
                         vals, counts = np.unique(cover, return_counts=True)
                         k = int(np.argmax(counts))
                         hidden_by, hidden = int(vals[k]), float(counts[k] / full)
@@ -575,7 +579,7 @@ def _swapped(ids0: np.ndarray, ids1: np.ndarray, t: int, reg0: np.ndarray, reg1:
     reg = reg0 if own is ids0 else reg1
     cover = other[reg]
     cover = cover[(cover != 0) & (cover != t)]
-    if cover.size < 0.5 * reg.sum():
+    if not cover.size or cover.size < 0.5 * reg.sum():
         return False
     vals, counts = np.unique(cover, return_counts=True)
     k = int(np.argmax(counts))

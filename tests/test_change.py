@@ -1203,8 +1203,9 @@ def test_object_replaced_in_place_by_one_that_hides_it_is_a_change(caplog):
     2 % farther, within the depth tolerance, so no pose confirms the ring. Never seen at t1
     and hidden there by the ball (a change of t1) at every pose, it was replaced. An object
     that still stands behind a newcomer keeps its ID where it is not hidden; one that a change
-    of light gave another ID at t1 shows that ID, of its own footprint, there; and a floor
-    patch re-segmented at t1 with nothing in front of it stays unchanged."""
+    of light gave another ID at t1 shows that ID, of its own footprint, there; a piece of the
+    floor beside the ball, which the ball half hides at t1, is smaller than the ball; and a
+    floor patch re-segmented at t1 with nothing in front of it stays unchanged."""
     cam = _plane_camera(0.0)
     ids, frames = {}, {}
     for i in range(3):
@@ -1213,8 +1214,10 @@ def test_object_replaced_in_place_by_one_that_hides_it_is_a_change(caplog):
         ids0[:], ids1[:] = 1, 1  # the floor at depth 5
         ids0[12:28, 8 + i:24 + i] = 5  # the ring at t0, 0.1 above the floor
         z0[12:28, 8 + i:24 + i] = 4.9
-        ids1[15:26, 10 + i:22 + i] = 7  # the ball at t1, in front of the ring's middle
-        z1[15:26, 10 + i:22 + i] = 4.0
+        ids1[14:27, 10 + i:23 + i] = 7  # the ball at t1, in front of the ring's middle
+        z1[14:27, 10 + i:23 + i] = 4.3
+        ids0[8:12, 20 + i:26 + i] = 11  # a floor piece at t0 only, which the ball ...
+        ids1[8:12, 20 + i:23 + i], z1[8:12, 20 + i:23 + i] = 7, 4.3  # ... half hides at t1
         ids0[5:35, 40:50] = ids1[5:35, 40:50] = 3  # a box that stays ...
         z0[5:35, 40:50] = z1[5:35, 40:50] = 4.5
         ids1[5:20, 38:52] = 8  # ... with a new object in front of its top at t1
@@ -1237,6 +1240,7 @@ def test_object_replaced_in_place_by_one_that_hides_it_is_a_change(caplog):
     assert df.loc[5, "instance"] == 5
     assert not df.loc[3, "changed"] and not df.loc[6, "changed"]
     assert not df.loc[9, "changed"]  # its other look shows where it is not hidden
+    assert not df.loc[11, "changed"]  # hidden by the ball too, but a smaller piece beside it
     assert "replaced: 1 IDs" in caplog.text and "5 by 7" in caplog.text
     cand = df.attrs["candidates"].set_index("instance")
     assert cand.loc[5, "verdict"] == "kept: replaced by 7"
@@ -1245,6 +1249,6 @@ def test_object_replaced_in_place_by_one_that_hides_it_is_a_change(caplog):
     # without the ball the ring's rim alone decides: unchanged
     for i in range(3):
         ids[("p1", "t1", i)][ids[("p1", "t1", i)] == 7] = 1
-        frames[("p1", "t1", i)]["depth"][15:26, 10 + i:22 + i] = 5.0
+        frames[("p1", "t1", i)]["depth"][8:27, 10 + i:23 + i] = 5.0
     _, df = compare_paths(ids, frames, o)
     assert not df.set_index("id").loc[5, "changed"]

@@ -61,6 +61,8 @@ CHANGE_TYPES = ("added", "removed", "moved")
 # share of a candidate's region hidden at the other time behind a nearer surface from which it
 # counts as disoccluded (its texture not trusted) and, by one changed ID, as replaced by it
 HIDDEN_SHARE = 0.25
+# largest ratio of two objects' sizes for one to be the other moved, or its replacement
+SIZE_RATIO = 1.5
 
 
 @dataclass
@@ -762,8 +764,12 @@ def replaced(df: pd.DataFrame, o: CompareOptions) -> list[int]:
     is changed (``removed`` or ``added``, ``partner`` the newcomer) when at least
     ``vote_frac`` of those poses had at least :data:`HIDDEN_SHARE` of its region hidden at the
     other time by one and the same ID that is a change of the other type, after the 3D and
-    colour confirmation (``df.attrs["hidden_by"]``, from :func:`decide`). Its ``instance`` is
-    its own ID."""
+    colour confirmation (``df.attrs["hidden_by"]``, from :func:`decide`), and that newcomer
+    stands in its place: the two are of about one size (within :data:`SIZE_RATIO`) and
+    their footprints overlap in the world (not :func:`_apart`; an ID without a world position
+    is never replaced). A piece of the surface behind or beside a new object is hidden by it
+    too, but is smaller than the object or lies off its centre. Its ``instance`` is its own
+    ID."""
     hidden_by = df.attrs.get("hidden_by", {})
     kind = dict(zip(df.loc[df["changed"], "id"].astype(int), df.loc[df["changed"], "type"]))
     marked = []
@@ -777,7 +783,14 @@ def replaced(df: pd.DataFrame, o: CompareOptions) -> list[int]:
         if not votes:
             continue
         h = max(votes, key=votes.get)
-        if votes[h] >= o.vote_frac * (n0 + n1):
+        if votes[h] < o.vote_frac * (n0 + n1):
+            continue
+        j = df.index[df["id"] == h][0]
+        s0, s1 = float(df.at[i, "size"]), float(df.at[j, "size"])
+        here = (df.loc[i, ["x", "y", "z"]].to_numpy(float), s0)
+        there = (df.loc[j, ["x", "y", "z"]].to_numpy(float), s1)
+        if np.isfinite(np.r_[here[0], there[0], s0, s1]).all() and \
+                max(s0, s1) <= SIZE_RATIO * min(s0, s1) and not _apart(here, there):
             df.at[i, "changed"], df.at[i, "type"] = True, typ
             df.at[i, "partner"], df.at[i, "instance"] = h, t
             marked.append(t)
@@ -849,7 +862,8 @@ def _pair_moved(df: pd.DataFrame, o: CompareOptions) -> None:
     for i, r in enumerate(rem):
         for j, a in enumerate(add):
             s0, s1 = df.at[r, "_size"], df.at[a, "_size"]
-            if max(s0, s1) > 1.5 * min(s0, s1) or not _apart(df.at[r, "_pos"], df.at[a, "_pos"]):
+            if max(s0, s1) > SIZE_RATIO * min(s0, s1) or not _apart(df.at[r, "_pos"],
+                                                                   df.at[a, "_pos"]):
                 continue
             S[i, j] = _bhattacharyya(df.at[r, "_hist"], df.at[a, "_hist"])
     S[S < o.moved_similarity] = 0.0  # only eligible pairs compete in the assignment

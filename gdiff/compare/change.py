@@ -763,15 +763,20 @@ def replaced(df: pd.DataFrame, o: CompareOptions) -> list[int]:
     that is absent at the other time at every pose where it was judged (and judged at >= 2)
     is changed (``removed`` or ``added``, ``partner`` the newcomer) when at least
     ``vote_frac`` of those poses had at least :data:`HIDDEN_SHARE` of its region hidden at the
-    other time by one and the same ID that is a change of the other type, after the 3D and
-    colour confirmation (``df.attrs["hidden_by"]``, from :func:`decide`), and that newcomer
+    other time by an ID of one and the same changed object (``instance``: a newcomer the
+    segmenter cut into pieces hides it with one piece here and another there) of the other
+    type, after the 3D and colour confirmation (``df.attrs["hidden_by"]``, from
+    :func:`decide`), and that newcomer (its largest piece, the instance's own ID)
     stands in its place: the two are of about one size (within :data:`SIZE_RATIO`) and
     their footprints overlap in the world (not :func:`_apart`; an ID without a world position
     is never replaced). A piece of the surface behind or beside a new object is hidden by it
     too, but is smaller than the object or lies off its centre. Its ``instance`` is its own
     ID."""
     hidden_by = df.attrs.get("hidden_by", {})
-    kind = dict(zip(df.loc[df["changed"], "id"].astype(int), df.loc[df["changed"], "type"]))
+    ch = df.loc[df["changed"]]
+    kind = dict(zip(ch["id"].astype(int), ch["type"]))
+    # the changed object an ID belongs to (its pieces hide the old object pose by pose)
+    owner = dict(zip(ch["id"].astype(int), ch["instance"].astype(int)))
     marked = []
     for i in df.index[~df["changed"]]:
         t = int(df.at[i, "id"])
@@ -779,11 +784,14 @@ def replaced(df: pd.DataFrame, o: CompareOptions) -> list[int]:
         if t not in hidden_by or (n0 > 0) == (n1 > 0) or n0 + n1 < 2:
             continue
         typ, other = ("removed", "added") if n0 else ("added", "removed")
-        votes = {h: c for h, c in hidden_by[t].items() if kind.get(h) == other}
+        votes: dict[int, int] = defaultdict(int)
+        for h, c in hidden_by[t].items():
+            if kind.get(h) == other:
+                votes[owner[h]] += c
         if not votes:
             continue
         h = max(votes, key=votes.get)
-        if votes[h] < o.vote_frac * (n0 + n1):
+        if votes[h] < o.vote_frac * (n0 + n1) or not (df["id"] == h).any():
             continue
         j = df.index[df["id"] == h][0]
         s0, s1 = float(df.at[i, "size"]), float(df.at[j, "size"])

@@ -355,8 +355,9 @@ def pose_stats(ids0: np.ndarray, ids1: np.ndarray, o: CompareOptions,
     pixels; same units as ``size``), ``observed`` (the ID can be judged at this pose) and,
     for a candidate absent at the other time, ``hidden_by`` / ``hidden``: the ID of the other
     time that hides most of its region there behind a nearer surface, and the share of the
-    region it hides (0 / 0.0 when nothing does, or when the rest of the region shows at the
-    other time an ID of its own footprint, :func:`_swapped`: its other look; with depth only).
+    region it hides (0 / 0.0 when nothing does, or when that share reaches
+    :data:`HIDDEN_SHARE` but the rest of the region shows at the other time an ID of its own
+    footprint, :func:`_swapped`: its other look; with depth only).
 
     A candidate is confirmed when its depth changed (``evidence >= min_evidence``) or its
     texture differs between the times (``similarity < same_similarity``); without depth an
@@ -502,13 +503,16 @@ def pose_stats(ids0: np.ndarray, ids1: np.ndarray, o: CompareOptions,
                     behind = (region0 & near1 & trusted) | (region1 & near0 & trusted)
                     cover = other[behind]
                     cover = cover[cover != 0]
-                    # an ID of the same footprint where it is not hidden is its own other
-                    # look (relit, tracked apart), not what it left behind
-                    if cover.size and not _swapped(ids0, ids1, t, region0 & region,
-                                                   region1 & region, o):
+                    if cover.size:
                         vals, counts = np.unique(cover, return_counts=True)
                         k = int(np.argmax(counts))
                         hidden_by, hidden = int(vals[k]), float(counts[k] / full)
+                    # an ID of the same footprint where it is not hidden is its own other
+                    # look (relit, tracked apart), not what it left behind (tested only
+                    # where the share would count, see decide)
+                    if hidden >= HIDDEN_SHARE and _swapped(ids0, ids1, t, region0 & region,
+                                                           region1 & region, o):
+                        hidden_by, hidden = 0, 0.0
                 if region.sum() < 0.25 * full:
                     cand = confirmed = False  # mostly hidden at the other time: undecidable
                 # partly hidden: a surface revealed (or covered) by something that moved; next
@@ -791,9 +795,10 @@ def replaced(df: pd.DataFrame, o: CompareOptions) -> list[int]:
         if not votes:
             continue
         h = max(votes, key=votes.get)
-        if votes[h] < o.vote_frac * (n0 + n1) or not (df["id"] == h).any():
+        head = df.index[df["id"] == h]
+        if votes[h] < o.vote_frac * (n0 + n1) or not len(head):
             continue
-        j = df.index[df["id"] == h][0]
+        j = head[0]
         s0, s1 = float(df.at[i, "size"]), float(df.at[j, "size"])
         here = (df.loc[i, ["x", "y", "z"]].to_numpy(float), s0)
         there = (df.loc[j, ["x", "y", "z"]].to_numpy(float), s1)

@@ -273,6 +273,18 @@ CANDIDATE_COLUMNS = ["instance", "ids", "types", "n_t0", "n_t1", "n_confirmed", 
                      "x", "y", "z", "size", "support", "colour", "verdict"]
 
 
+def _candidate_row(instance: int, members: pd.DataFrame, support: float, colour: float,
+                   verdict: str) -> dict:
+    """One row of ``candidates.csv`` (:data:`CANDIDATE_COLUMNS`) for a changed object made of
+    the table rows ``members``: its counts, area, place and size are its largest member's."""
+    head = members.loc[members["area"].idxmax()]
+    return dict(instance=instance, ids=" ".join(str(int(i)) for i in members["id"]),
+                types=" ".join(sorted(set(members["type"]))), n_t0=int(head["n_t0"]),
+                n_t1=int(head["n_t1"]), n_confirmed=int(head["n_confirmed"]),
+                area=float(head["area"]), **{c: float(head[c]) for c in ("x", "y", "z", "size")},
+                support=support, colour=colour, verdict=verdict)
+
+
 def _confirm_by_evidence(df: pd.DataFrame, o: CompareOptions, band: int,
                          light_changed: bool = False) -> None:
     """Keep only the changed objects of the ID comparison that the 3D evidence or their own
@@ -317,15 +329,7 @@ def _confirm_by_evidence(df: pd.DataFrame, o: CompareOptions, band: int,
                   "%s", v, support, col, verdict)
         if verdict == "dropped":
             drop.extend(ch[sel])
-        members = df.loc[ch[sel]]
-        head = members.loc[members["area"].idxmax()]
-        rows.append(dict(instance=int(v), ids=" ".join(str(int(i)) for i in members["id"]),
-                         types=" ".join(sorted(set(members["type"]))), n_t0=int(head["n_t0"]),
-                         n_t1=int(head["n_t1"]), n_confirmed=int(head["n_confirmed"]),
-                         area=float(head["area"]), **{c: float(head[c]) for c in
-                                                      ("x", "y", "z", "size")},
-                         support=support, colour=col,
-                         verdict=verdict))
+        rows.append(_candidate_row(int(v), df.loc[ch[sel]], support, col, verdict))
     df.attrs["candidates"] = pd.DataFrame(rows, columns=CANDIDATE_COLUMNS)
     n = len(np.unique(inst))
     log.info("%s%d of %d changed objects of the ID comparison changed in 3D (>= %.0f %% of "
@@ -343,18 +347,12 @@ def _replaced(df: pd.DataFrame, o: CompareOptions) -> None:
     """Mark the objects replaced in place by a change (:func:`gdiff.compare.change.replaced`),
     log them and list them in ``df.attrs["candidates"]`` with the verdict ``kept: replaced by
     <ID>``."""
-    marked = replaced(df, o)
-    if not marked:
+    marked = df[df["id"].isin(replaced(df, o))]
+    if marked.empty:
         return
-    rows = []
-    for t in marked:
-        r = df.loc[df["id"] == t].iloc[0]
-        rows.append(dict(instance=t, ids=str(t), types=r["type"], n_t0=int(r["n_t0"]),
-                         n_t1=int(r["n_t1"]), n_confirmed=int(r["n_confirmed"]),
-                         area=float(r["area"]), **{c: float(r[c]) for c in ("x", "y", "z", "size")},
-                         support=float(r["support"]),
-                         colour=float(r["colour"]),
-                         verdict=f"kept: replaced by {int(r['partner'])}"))
+    rows = [_candidate_row(int(r["id"]), marked.loc[[i]], float(r["support"]),
+                           float(r["colour"]), f"kept: replaced by {int(r['partner'])}")
+            for i, r in marked.iterrows()]
     cand = df.attrs.get("candidates")
     new = pd.DataFrame(rows, columns=CANDIDATE_COLUMNS)
     df.attrs["candidates"] = new if cand is None or cand.empty else pd.concat(
@@ -362,8 +360,7 @@ def _replaced(df: pd.DataFrame, o: CompareOptions) -> None:
     log.info("replaced: %d IDs never seen at the other time, where a change of that time hides "
              "at least %.0f %% of them at >= %.0f %% of their poses, are changes too (%s)",
              len(marked), 100 * HIDDEN_SHARE, 100 * o.vote_frac,
-             ", ".join(f"{t} by {int(df.loc[df['id'] == t, 'partner'].iloc[0])}"
-                       for t in marked))
+             ", ".join(f"{int(r['id'])} by {int(r['partner'])}" for _, r in marked.iterrows()))
 
 
 def _add_evidence(masks, ev: GeometryEvidence, leave_out: np.ndarray | None = None) -> int:

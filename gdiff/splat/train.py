@@ -49,8 +49,8 @@ after a reset the deformation field can be held (learning rates 0): the darkened
 its shared opacity and scale outputs up for every Gaussian at once, and at some seeds the field
 runs away until the fit diverges or prunes most Gaussians at the next refine. The hold is off
 by default (it also costs the change maps a little); a fit that diverges after a reset says
-so and names it. The SH
-degree rises by one every ``sh_degree_interval`` iterations up to ``sh_degree``. The position
+so and names it. The SH degree rises by one every ``sh_degree_interval`` iterations up to
+``sh_degree``. The position
 learning rate decays exponentially over the whole run, the deformation's over the fine phase.
 
 Outputs in ``out_dir``: ``model.pt``, ``gaussians_t0.ply``, ``gaussians_t1.ply``,

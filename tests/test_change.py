@@ -13,6 +13,8 @@ import pytest
 from gdiff import synth
 from gdiff.compare import (CompareOptions, change_masks, compare, compare_paths, decide,
                            detect_changes_pair, pose_stats)
+from gdiff.compare import change as change_mod
+from gdiff.compare.change import replaced
 from gdiff.errors import SceneError
 from gdiff.parallel import fork_available
 from gdiff.io import read_ids, read_image, read_mask, srgb_to_linear
@@ -1256,3 +1258,50 @@ def test_object_replaced_in_place_by_one_that_hides_it_is_a_change(caplog):
         frames[("p1", "t1", i)]["depth"][8:27, 10 + i:23 + i] = 5.0
     _, df = compare_paths(ids, frames, o)
     assert not df.set_index("id").loc[5, "changed"]
+
+
+def _replaced_table(hider_type: str) -> pd.DataFrame:
+    """A ring (ID 5) seen at t0 only, at 10 poses, hidden at t1 at 8 of them by ID 7 of the
+    changed object 7 (typed ``hider_type``) of its size and at its place."""
+    df = pd.DataFrame([
+        dict(id=5, changed=False, type="", partner=0, n_t0=10, n_t1=0, instance=0,
+             x=0.0, y=0.0, z=5.0, size=0.7),
+        dict(id=7, changed=True, type=hider_type, partner=0, n_t0=0, n_t1=10, instance=7,
+             x=0.1, y=0.0, z=5.0, size=0.75)])
+    df.attrs["hidden_by"] = {5: {7: 8}}
+    return df
+
+
+def test_replaced_counts_a_moved_hider_but_not_one_of_its_own_time():
+    """The object in the ring's place at t1 may be typed moved (it stands at both times, or
+    was paired with something elsewhere): it replaced the ring all the same. A removed object
+    hides nothing at t1."""
+    o = CompareOptions()
+    for hider, marked in (("added", True), ("moved", True), ("removed", False)):
+        df = _replaced_table(hider)
+        assert (replaced(df, o) == [5]) is marked, hider
+        assert bool(df.set_index("id").loc[5, "changed"]) is marked, hider
+
+
+def test_receded_needs_the_rest_farther_than_the_pose_noise():
+    """The rest of a hidden region counts as showing what stood behind it only when its depth
+    at the other time grew by more than RECEDED_NOISE times the pose's depth noise; the noise
+    is measured on the surfaces that stay with the same ID."""
+    rng = np.random.default_rng(0)
+    H, W = 40, 60
+    ids = np.ones((H, W), np.int64)
+    ids[10:30, 10:30] = 5  # the candidate at t0
+    ids1 = ids.copy()
+    ids1[10:30, 10:30] = 1  # ... gone at t1: the floor shows
+    z0 = np.full((H, W), 5.0) * (1 + 0.01 * rng.standard_normal((H, W)))
+    z1 = np.full((H, W), 5.0) * (1 + 0.01 * rng.standard_normal((H, W)))
+    stay0 = stay1 = ids == 1
+    noise = change_mod._depth_noise(ids, ids1, z0, z1, stay0, stay1, None)
+    assert 0.005 < noise < 0.02  # median |N(0, sqrt(2) %)| ~ 0.95 %
+    rest = ids == 5
+    own = z0.copy()
+    for rise, farther in ((0.0, False), (0.5 * noise, False), (4 * noise, True)):
+        own[rest] = z1[rest] / (1 + rise)
+        assert change_mod._receded(own, z1, rest, noise) is farther, rise
+    assert not change_mod._receded(own, z1, rest, float("nan"))
+    assert not change_mod._receded(own, z1, np.zeros((H, W), bool), noise)

@@ -63,6 +63,9 @@ CHANGE_TYPES = ("added", "removed", "moved")
 HIDDEN_SHARE = 0.25
 # largest ratio of two objects' sizes for one to be the other moved, or its replacement
 SIZE_RATIO = 1.5
+# a surface lies farther at the other time when its depth grew by more than this many times the
+# pose's depth noise (the median relative depth difference of the surfaces that stay)
+RECEDED_NOISE = 2.0
 
 
 @dataclass
@@ -356,8 +359,9 @@ def pose_stats(ids0: np.ndarray, ids1: np.ndarray, o: CompareOptions,
     for a candidate absent at the other time, ``hidden_by`` / ``hidden``: the ID of the other
     time that hides most of its region there behind a nearer surface, and the share of the
     region it hides (0 / 0.0 when nothing does, or when that share reaches
-    :data:`HIDDEN_SHARE` but the rest of the region shows at the other time an ID of its own
-    footprint, :func:`_swapped`: its other look; with depth only).
+    :data:`HIDDEN_SHARE` but the rest of the region does not show a farther surface at the
+    other time, :func:`_receded`: the candidate may still stand there, relit or re-segmented,
+    behind the newcomer; with depth only).
 
     A candidate is confirmed when its depth changed (``evidence >= min_evidence``) or its
     texture differs between the times (``similarity < same_similarity``); without depth an
@@ -507,12 +511,16 @@ def pose_stats(ids0: np.ndarray, ids1: np.ndarray, o: CompareOptions,
                         vals, counts = np.unique(cover, return_counts=True)
                         k = int(np.argmax(counts))
                         hidden_by, hidden = int(vals[k]), float(counts[k] / full)
-                    # an ID of the same footprint where it is not hidden is its own other
-                    # look (relit, tracked apart), not what it left behind (tested only
-                    # where the share would count, see decide)
-                    if hidden >= HIDDEN_SHARE and _swapped(ids0, ids1, t, region0 & region,
-                                                           region1 & region, o):
-                        hidden_by, hidden = 0, 0.0
+                    # gone, not only covered: where it is not hidden, the other time shows
+                    # what stood behind it (tested only where the share would count, see
+                    # decide)
+                    if hidden >= HIDDEN_SHARE:
+                        if "noise" not in cache:
+                            cache["noise"] = _depth_noise(ids0, ids1, depth0, depth1, cont0,
+                                                          cont1, known)
+                        own, there = (depth0, depth1) if a0 else (depth1, depth0)
+                        if not _receded(own, there, region & trusted, cache["noise"]):
+                            hidden_by, hidden = 0, 0.0
                 if region.sum() < 0.25 * full:
                     cand = confirmed = False  # mostly hidden at the other time: undecidable
                 # partly hidden: a surface revealed (or covered) by something that moved; next
@@ -572,6 +580,37 @@ def pose_stats(ids0: np.ndarray, ids1: np.ndarray, o: CompareOptions,
         rec["pos_size"] = rec["size"] if len(rec["pos"]) == 3 else float(np.sqrt(m.sum()))
         out[int(t)] = rec
     return out
+
+
+def _depth_noise(ids0: np.ndarray, ids1: np.ndarray, depth0: np.ndarray, depth1: np.ndarray,
+                 cont0: np.ndarray, cont1: np.ndarray, known: np.ndarray | None) -> float:
+    """The depth noise of one pose: the median of ``|z1 - z0| / z0`` over the pixels that
+    show, at both times, the same ID of those that stay (``cont0`` / ``cont1``, see
+    :func:`_continuing`), where both depths are finite and positive (and ``known``, bool
+    [H, W], when given); NaN when there are none. Unitless (relative depth)."""
+    z0, z1 = np.asarray(depth0, np.float64), np.asarray(depth1, np.float64)
+    m = cont0 & cont1 & (ids0 == ids1) & np.isfinite(z0) & np.isfinite(z1) & (z0 > 0) & (z1 > 0)
+    if known is not None:
+        m &= known
+    if not m.any():
+        return float("nan")
+    return float(np.median(np.abs(z1[m] - z0[m]) / z0[m]))
+
+
+def _receded(own: np.ndarray, there: np.ndarray, rest: np.ndarray, noise: float) -> bool:
+    """True when the pixels ``rest`` (bool [H, W]) of a candidate, z-depth ``own`` [H, W] at
+    its own time, show at the other time (z-depth ``there``) a surface farther away: the
+    median of ``(there - own) / own`` over the pixels with both depths exceeds
+    :data:`RECEDED_NOISE` times the pose's depth ``noise`` (:func:`_depth_noise`). An object
+    taken away leaves what stood behind it in view; one still standing there (relit,
+    re-segmented) keeps its depth. False without such pixels or a finite noise."""
+    if not np.isfinite(noise):
+        return False
+    a, b = own[rest].astype(np.float64), there[rest].astype(np.float64)
+    ok = np.isfinite(a) & np.isfinite(b) & (a > 0) & (b > 0)
+    if not ok.any():
+        return False
+    return bool(np.median((b[ok] - a[ok]) / a[ok]) > RECEDED_NOISE * noise)
 
 
 def _swapped(ids0: np.ndarray, ids1: np.ndarray, t: int, reg0: np.ndarray, reg1: np.ndarray,
@@ -763,19 +802,23 @@ def replaced(df: pd.DataFrame, o: CompareOptions) -> list[int]:
     old one in place (a sphere put where a ring lay), that leaves only a thin rim of the old
     object to judge, whose depth barely differs from the floor now seen there: the old
     object is never confirmed. It differs from an object that still stands behind the
-    newcomer in that it is seen at the other time at none of its poses. So an unchanged ID
+    newcomer in that it is seen at the other time at none of its poses, and in that its rim
+    shows at the other time what stood behind it, farther than the pose's depth noise
+    (:func:`_receded`; a surface still there keeps its depth). So an unchanged ID
     that is absent at the other time at every pose where it was judged (and judged at >= 2)
     is changed (``removed`` or ``added``, ``partner`` the newcomer) when at least
     ``vote_frac`` of those poses had at least :data:`HIDDEN_SHARE` of its region hidden at the
-    other time by an ID of one and the same changed object (``instance``: a newcomer the
-    segmenter cut into pieces hides it with one piece here and another there) of the other
-    type, after the 3D and colour confirmation (``df.attrs["hidden_by"]``, from
-    :func:`decide`), and that newcomer (its largest piece, the instance's own ID)
+    other time, with the rest receded, by an ID of one and the same changed object
+    (``instance``: a newcomer the segmenter cut into pieces hides it with one piece here and
+    another there) of the other type or moved (a moved object stands at both times, at
+    its new place at the other time; and a newcomer paired by mistake with something apart
+    is typed moved too), after the 3D and colour confirmation (``df.attrs["hidden_by"]``,
+    from :func:`decide`), and that newcomer (its largest piece, the instance's own ID)
     stands in its place: the two are of about one size (within :data:`SIZE_RATIO`) and
     their footprints overlap in the world (not :func:`_apart`; an ID without a world position
     is never replaced). A piece of the surface behind or beside a new object is hidden by it
-    too, but is smaller than the object or lies off its centre. Its ``instance`` is its own
-    ID."""
+    too, but keeps its depth where it is not hidden, or is smaller than the object, or lies
+    off its centre. Its ``instance`` is its own ID."""
     hidden_by = df.attrs.get("hidden_by", {})
     ch = df.loc[df["changed"]]
     kind = dict(zip(ch["id"].astype(int), ch["type"]))
@@ -790,7 +833,7 @@ def replaced(df: pd.DataFrame, o: CompareOptions) -> list[int]:
         typ, other = ("removed", "added") if n0 else ("added", "removed")
         votes: dict[int, int] = defaultdict(int)
         for h, c in hidden_by[t].items():
-            if kind.get(h) == other:
+            if kind.get(h) in (other, "moved"):
                 votes[owner[h]] += c
         if not votes:
             continue

@@ -357,8 +357,9 @@ def _replaced(df: pd.DataFrame, o: CompareOptions) -> None:
     new = pd.DataFrame(rows, columns=CANDIDATE_COLUMNS)
     df.attrs["candidates"] = new if cand is None or cand.empty else pd.concat(
         [cand, new], ignore_index=True)
-    log.info("replaced: %d IDs never seen at the other time, where a change of that time hides "
-             "at least %.0f %% of them at >= %.0f %% of their poses, are changes too (%s)",
+    log.info("replaced: %d IDs never seen at the other time, where a change present at that "
+             "time hides at least %.0f %% of them and the rest shows a farther surface at >= "
+             "%.0f %% of their poses, are changes too (%s)",
              len(marked), 100 * HIDDEN_SHARE, 100 * o.vote_frac,
              ", ".join(f"{int(r['id'])} by {int(r['partner'])}" for _, r in marked.iterrows()))
 

@@ -576,6 +576,10 @@ def test_operating_point_moves_off_one_half_only_for_a_real_gain():
     assert th == 0.5 and "0.37" in why
     assert operating_point(None, float("nan"), float("nan"), 0.01)[0] == 0.5  # no masks
     assert operating_point(0.37, 0.903, 0.902, 0.0)[0] == 0.37
+    # a capture with next to no change: one stray ID in the masks, a flat low curve
+    th, why = operating_point(0.01, 0.019, 0.0, 0.01)
+    assert th == 0.5 and "no threshold reproduces" in why
+    assert operating_point(0.22, 0.609, 0.482, 0.01)[0] == 0.22  # sparse capture: moves
 
 
 def test_threshold_null_is_chosen_from_the_key_views(tiny_fit, tmp_path):

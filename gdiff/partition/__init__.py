@@ -57,7 +57,8 @@ L3d (kNN KL), plus the fit stage's L1 + L_TV when the geometry is fine-tuned too
   BCE-trained head calls even, unless the probability threshold whose union maps best
   reproduce the compare stage's union masks at the key views (max pooled F1 over a 0.01
   grid, :func:`choose_threshold`, after training) beats 0.5 there by more than
-  ``threshold_gain`` F1 (:func:`~gdiff.partition.train.operating_point`). A head that could
+  ``threshold_gain`` F1 and reaches F1 0.5 there
+  (:func:`~gdiff.partition.train.operating_point`). A head that could
   not fit its supervision (masks that disagree between views) so gets the threshold its own
   views call for, while a nearly flat curve does not move it: on noisy compare masks (false
   changes on poorly fitted surfaces) the maximum follows the noise. A number fixes the

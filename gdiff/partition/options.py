@@ -41,7 +41,8 @@ class PartitionOptions:
     threshold: float | None = None    # probability above which a pixel / Gaussian is "changed";
                                       # None = from the key views: 0.5 unless the threshold that
                                       # best reproduces their masks gains more than
-                                      # threshold_gain F1 there (partition/threshold.json)
+                                      # threshold_gain F1 there and reaches F1 0.5
+                                      # (partition/threshold.json)
     threshold_gain: float = 0.01      # see threshold
     max_side: int | None = None       # longest image side for training; None = the fit's, 0 = full
     checkpoint_every: int = 500       # write a resumable checkpoint every this many steps

@@ -383,19 +383,31 @@ def _mean_defined(x) -> float:
     return float(x.mean()) if len(x) else float("nan")
 
 
+# pooled key-view F1 the maps must reach at a threshold off 0.5 for it to be taken: at 1/2 the
+# pixels where map and masks agree on a change (2 TP) are as many as those where they disagree
+# (FP + FN); below it no threshold reproduces the masks, and the maximum follows stray pixels
+MIN_REPRODUCED_F1 = 0.5
+
+
 def operating_point(best_threshold: float | None, best_f1: float, f1_at_half: float,
                     min_gain: float) -> tuple[float, str]:
     """The map threshold when ``partition.threshold`` is null, and why.
 
     0.5 is the probability a BCE-trained head calls even; it stays unless the threshold that
     best reproduces the key-view masks (``best_threshold``, pooled F1 ``best_f1``) beats it
-    there by more than ``min_gain`` F1: a head that could not fit its supervision (masks that
+    there by more than ``min_gain`` F1 and reproduces them at least half-way (``best_f1`` >=
+    :data:`MIN_REPRODUCED_F1`): a head that could not fit its supervision (masks that
     disagree between views leave changed Gaussians at low probabilities) gets the threshold
     its own training views call for, while a nearly flat F1 curve is not read as a reason to
-    move (on views it was trained on, the maximum also fits their noise).
+    move (on views it was trained on, the maximum also fits their noise), nor is a curve that
+    stays low everywhere (a scene with next to no change: a few stray changed pixels in the
+    masks would pull the threshold down to where the map paints noise over every view).
     """
     if best_threshold is None:
         return 0.5, "default 0.5 (the key-view masks have no changed or no unchanged pixel)"
+    if best_f1 < MIN_REPRODUCED_F1:
+        return 0.5, (f"0.5: no threshold reproduces the key-view masks (best F1 {best_f1:.3f} "
+                     f"at {best_threshold:.2f}, < {MIN_REPRODUCED_F1})")
     if best_f1 - f1_at_half > min_gain:
         return float(best_threshold), (f"max F1 over the key views ({best_f1:.3f}, "
                                        f"{best_f1 - f1_at_half:+.3f} over 0.5)")

@@ -2,7 +2,8 @@
 
 Usage::
 
-    python benchmarks/poses.py SCENE_DIR [--matcher auto|exhaustive|sequential] [--out DIR]
+    python benchmarks/poses.py SCENE_DIR [--matcher auto|exhaustive|retrieval|sequential]
+        [--out DIR]
         [--camera-model PINHOLE|SIMPLE_PINHOLE] [--refine-principal-point] [--csv FILE]
         [--max-reproj-error PX] [--refine-iterations N] [--mapper-attempts N] [--threads N]
         [--repeatable|--no-repeatable]
@@ -33,12 +34,13 @@ from gdiff.align import pose_errors
 from gdiff.cameras import load_cameras
 from gdiff.log import setup_logging
 from gdiff.sfm import PosesOptions, read_cameras_file, run_poses
+from gdiff.sfm.options import MATCHERS
 
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("scene")
-    ap.add_argument("--matcher", default="auto", choices=["auto", "exhaustive", "sequential"])
+    ap.add_argument("--matcher", default="auto", choices=MATCHERS)
     ap.add_argument("--camera-model", default="PINHOLE", choices=["PINHOLE", "SIMPLE_PINHOLE"])
     ap.add_argument("--refine-principal-point", action="store_true")
     d = PosesOptions()

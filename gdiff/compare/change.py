@@ -582,16 +582,27 @@ def pose_stats(ids0: np.ndarray, ids1: np.ndarray, o: CompareOptions,
     return out
 
 
+def surfaces(depth0: np.ndarray, depth1: np.ndarray, known: np.ndarray | None
+             ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """float64 z-depths [H, W] at t0 and t1 and bool [H, W] where each has a surface (finite,
+    positive depth), restricted to ``known`` when given."""
+    z0 = np.asarray(depth0, np.float64)
+    z1 = np.asarray(depth1, np.float64)
+    v0 = np.isfinite(z0) & (z0 > 0)
+    v1 = np.isfinite(z1) & (z1 > 0)
+    if known is not None:
+        v0, v1 = v0 & known, v1 & known
+    return z0, z1, v0, v1
+
+
 def _depth_noise(ids0: np.ndarray, ids1: np.ndarray, depth0: np.ndarray, depth1: np.ndarray,
                  cont0: np.ndarray, cont1: np.ndarray, known: np.ndarray | None) -> float:
     """The depth noise of one pose: the median of ``|z1 - z0| / z0`` over the pixels that
     show, at both times, the same ID of those that stay (``cont0`` / ``cont1``, see
-    :func:`_continuing`), where both depths are finite and positive (and ``known``, bool
-    [H, W], when given); NaN when there are none. Unitless (relative depth)."""
-    z0, z1 = np.asarray(depth0, np.float64), np.asarray(depth1, np.float64)
-    m = cont0 & cont1 & (ids0 == ids1) & np.isfinite(z0) & np.isfinite(z1) & (z0 > 0) & (z1 > 0)
-    if known is not None:
-        m &= known
+    :func:`_continuing`), where both times have a surface (:func:`surfaces`, within
+    ``known``, bool [H, W], when given); NaN when there are none. Unitless (relative depth)."""
+    z0, z1, v0, v1 = surfaces(depth0, depth1, known)
+    m = cont0 & cont1 & (ids0 == ids1) & v0 & v1
     if not m.any():
         return float("nan")
     return float(np.median(np.abs(z1[m] - z0[m]) / z0[m]))

@@ -43,7 +43,7 @@ from scipy.sparse.csgraph import connected_components
 from ..errors import SceneError
 from ..io import atomic_path
 from ..track import world_points
-from .change import coherent
+from .change import coherent, surfaces
 
 log = logging.getLogger("gdiff.compare")
 
@@ -262,19 +262,6 @@ def _objects(keys: np.ndarray, min_vox: int) -> tuple[np.ndarray, np.ndarray, in
     return keys[keep[lab]], renum[lab[keep[lab]]], int(keep.sum())
 
 
-def _surfaces(depth0: np.ndarray, depth1: np.ndarray, known: np.ndarray | None
-              ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """float64 z-depths [H, W] at t0 and t1 and bool [H, W] where each has a surface (finite,
-    positive depth), restricted to ``known`` when given."""
-    z0 = np.asarray(depth0, np.float64)
-    z1 = np.asarray(depth1, np.float64)
-    v0 = np.isfinite(z0) & (z0 > 0)
-    v1 = np.isfinite(z1) & (z1 > 0)
-    if known is not None:
-        v0, v1 = v0 & known, v1 & known
-    return z0, z1, v0, v1
-
-
 def _relative_inverse_depth(z0: np.ndarray, z1: np.ndarray, v0: np.ndarray, v1: np.ndarray
                             ) -> tuple[np.ndarray, np.ndarray]:
     """Inverse depth times the pose's median depth (over ``z0[v0]`` and ``z1[v1]``) [H, W] at
@@ -306,7 +293,7 @@ def pose_flags(depth0: np.ndarray, depth1: np.ndarray, rel: float, open_frac: fl
     ``known`` (bool [H, W], observed by photos of both times, :mod:`gdiff.compare.coverage`)
     restricts all four.
     """
-    z0, z1, v0, v1 = _surfaces(depth0, depth1, known)
+    z0, z1, v0, v1 = surfaces(depth0, depth1, known)
     if not (v0.any() and v1.any()):
         none = np.zeros(z0.shape, bool)
         return none, none, v0, v1
@@ -331,7 +318,7 @@ def flat_flags(depth0: np.ndarray, depth1: np.ndarray, rel: float, open_frac: fl
     the image's longer side wide; ``looked`` are pixels with a surface at both times. The
     surface is the same at both times, so it is flagged (and looked at) at both.
     ``known`` (bool [H, W] or None) restricts both."""
-    z0, z1, v0, v1 = _surfaces(depth0, depth1, known)
+    z0, z1, v0, v1 = surfaces(depth0, depth1, known)
     v = v0 & v1
     if not v.any():
         none = np.zeros(z0.shape, bool)

@@ -50,8 +50,8 @@ its shared opacity and scale outputs up for every Gaussian at once, and at some 
 runs away until the fit diverges or prunes most Gaussians at the next refine. The hold is off
 by default (it also costs the change maps a little); a fit that diverges after a reset says
 so and names it. The SH degree rises by one every ``sh_degree_interval`` iterations up to
-``sh_degree``. The position
-learning rate decays exponentially over the whole run, the deformation's over the fine phase.
+``sh_degree``. The position learning rate decays exponentially over the whole run, the
+deformation's over the fine phase.
 
 Outputs in ``out_dir``: ``model.pt``, ``gaussians_t0.ply``, ``gaussians_t1.ply``,
 ``train_log.csv`` (iteration, phase, loss terms, PSNR of the step's image, #Gaussians,

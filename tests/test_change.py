@@ -1305,3 +1305,75 @@ def test_receded_needs_the_rest_farther_than_the_pose_noise():
         assert change_mod._receded(own, z1, rest, noise) is farther, rise
     assert not change_mod._receded(own, z1, rest, float("nan"))
     assert not change_mod._receded(own, z1, np.zeros((H, W), bool), noise)
+
+
+def test_object_voxels_need_the_vote_two_frames_and_the_other_time_empty():
+    """A voxel is an object's when at least ``vote`` of the frames with a surface in it flag
+    it, at least two do, and most of those poses see no surface there at the other time; -1
+    (no surface) is never a voxel."""
+    from gdiff.compare.spread import (count_voxels, depth_edges, object_voxels, spread_masks,
+                                      voxel_keys)
+
+    keys = np.array([[1, 2, 3, -1]], np.int64)
+    here = count_voxels([(keys, np.array([[True, True, False, True]])),
+                         (keys, np.array([[True, False, False, False]])),
+                         (keys, np.array([[False, False, False, False]]))])
+    empty = count_voxels([])
+    # voxel 1: flagged by 2 of 3 frames; voxel 2: by 1 of 3 (one frame is never enough)
+    assert object_voxels(here, empty, 0.3).tolist() == [1]
+    assert object_voxels(here, empty, 0.7).tolist() == []  # 2 of 3 is below 0.7
+    assert object_voxels(here, empty, 0.3, min_views=1).tolist() == [1, 2]
+    assert object_voxels(empty, empty, 0.3).tolist() == []
+    # at the other time 2 of the 3 poses see a surface in voxel 1: it stayed, it is not carried
+    other = count_voxels([(np.array([[1, -1]]), np.zeros((1, 2), bool))] * 2)
+    assert object_voxels(here, other, 0.3).tolist() == []
+    assert object_voxels(here, other, 0.3, vacated=0.7).tolist() == [1]  # 2 < 0.7 x 3
+    m = spread_masks(np.array([[1, 2, -1, 5]], np.int64), np.array([1, 5], np.int64))
+    assert m.tolist() == [[True, False, False, True]]
+    # a depth step of 20 % at column 10: pixels within 2 columns of it are edges, a 1 % slope
+    # is not; nor is a pixel without a surface a key
+    z = np.tile(np.where(np.arange(20) < 10, 4.0, 5.0) * (1 + 0.0005 * np.arange(20)), (6, 1))
+    edges = depth_edges(z, 0.05)
+    assert np.flatnonzero(edges[3]).tolist() == [8, 9, 10, 11]
+    z[0, 0] = np.nan
+    cam = _wall_camera(0.0)
+    assert voxel_keys(z, cam, 0.1)[0, 0] == -1 and voxel_keys(z, cam, 0.1)[3, 9] >= 0
+    assert voxel_keys(z, cam, 0.1, edge_rel=0.05)[3, 9] == -1
+
+
+def test_changed_object_merged_at_most_poses_is_carried_there_in_3d():
+    """A box is added in front of the wall. The segmenter cuts it out at 4 of the 9 poses and
+    merges it with the wall at the other 5, and at 3 poses its segment also takes a strip of
+    the wall along. The ID comparison marks the box at its 4 poses only; carried in 3D, the box
+    is marked at all 9. The strip is not carried: the wall there looks the same at both
+    times."""
+    cams = [_wall_camera(x) for x in np.linspace(-1.0, 1.0, 9)]
+    ids, frames, truth, strip = {}, {}, {}, {}
+    keys = {("p1", i): i % 2 for i in range(len(cams))}  # every pose a key frame of a time
+    for i, cam in enumerate(cams):
+        z0, z1 = _box_scene_depth(cam, False), _box_scene_depth(cam, True)
+        truth[i] = z1 < 4.5
+        P = world_points(z1, cam)
+        strip[i] = (P[..., 0] >= -2.4) & (P[..., 0] <= -1.9) & ~truth[i]
+        ids1 = np.ones(z1.shape, np.int32)
+        if i < 4:
+            ids1[truth[i]] = 3
+        if i < 3:
+            ids1[strip[i]] = 3
+        for t, z, rgb, m in (("t0", z0, _wall_rgb(cam, z0), np.ones(z0.shape, np.int32)),
+                             ("t1", z1, _wall_rgb(cam, z1, truth[i]), ids1)):
+            ids[("p1", t, i)] = m
+            frames[("p1", t, i)] = dict(depth=z, camera=cam, rgb=rgb)
+    o = CompareOptions(geometry=False, flat=False)
+    masks, df = compare_paths(ids, frames, o, keys=keys)
+    assert set(df.loc[df["changed"], "id"]) == {3}
+    for i in range(len(cams)):
+        m0, m1 = masks[("p1", i)]
+        assert not m0.any(), i
+        hit = (m1 & truth[i]).sum() / truth[i].sum()
+        assert hit > 0.7, (i, hit)  # less a depth edge 2 px wide around a 30 px box
+        if i >= 3:
+            assert not (m1 & strip[i]).any(), i
+            assert (m1 & ~truth[i]).sum() <= 0.05 * truth[i].sum(), i
+    off, _ = compare_paths(ids, frames, dataclasses.replace(o, spread_vote=0.0), keys=keys)
+    assert all(not off[("p1", i)][1].any() for i in range(4, len(cams)))

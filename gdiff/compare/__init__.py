@@ -13,6 +13,8 @@ The rule ``compare`` maps to this package:
   their IDs (objects the segmenter merged with their support), added to the masks;
 * :mod:`.photos` — whether the training photos of the two times differ where the flat
   evidence says a surface's appearance changed (the fit's own errors are photographed alike).
+* :mod:`.spread` — a changed object's surface carried in 3D to the poses where the segmenter
+  merged it with another ID (voxels the key frames show as changed IDs at one time only).
 
 The appearance test (:mod:`gdiff.appearance`) stays a top-level module: the tracker of the
 ``segment`` stage uses it as well.

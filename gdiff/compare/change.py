@@ -143,6 +143,10 @@ class CompareOptions:
         all.
     surround_width: width of the ring around a region whose mean colour stands for the local
         light in :func:`surround_colour_change`, as a fraction of the image's longer side.
+    spread_vote: a changed object's surface is marked at every pose, also where the segmenter
+        merged it into another ID: the voxels (``geometry_voxel_px``) that at least this share
+        of the key frames looking at them show as pixels of changed IDs, and at least two
+        (:mod:`gdiff.compare.spread`). 0: off.
     """
 
     presence_iou: float = 0.3
@@ -174,6 +178,7 @@ class CompareOptions:
     confirm_support: float = 0.5
     confirm_colour: float = 0.25
     surround_width: float = 0.05
+    spread_vote: float = 0.3
 
     def observed_step(self, height: int, width: int) -> int:
         """Pixel step of the coverage test on a ``height`` x ``width`` frame (see
@@ -209,7 +214,7 @@ class CompareOptions:
                               "'compare.geometry_min_object' (in [0, 1)) are out of range")
         for k in ("presence_iou", "min_evidence", "vote_frac", "moved_similarity",
                   "same_similarity", "min_observed", "texture_color_similarity",
-                  "geometry_vote", "confirm_support"):
+                  "geometry_vote", "confirm_support", "spread_vote"):
             if not 0.0 <= getattr(self, k) <= 1.0:
                 raise ConfigError(f"config key 'compare.{k}' must lie in [0, 1]")
 

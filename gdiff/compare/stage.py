@@ -36,6 +36,7 @@ from .coverage import DepthView, observed, surface
 from .geometry import (GeometryEvidence, flat_flags, pose_flags, pose_record,
                        write_evidence)
 from .photos import KeyPhoto, alike_components, load_photo
+from .spread import count_voxels, object_voxels, spread_masks, voxel_keys
 
 log = logging.getLogger("gdiff.compare")
 
@@ -229,10 +230,87 @@ def compare_paths(ids: dict[Key, np.ndarray], frames: dict[Key, dict] | None,
                      "the rims or shadows of other changes (left out); %d pixels added over "
                      "%d poses", 100 * g["rate"], g["changed_voxels"], g["objects"],
                      len(alike), len(rims), added, len(masks))
+    if o.spread_vote > 0 and changed and keys:  # last: the rules above judge the ID masks
+        voxel = geo.voxel if geo is not None and geo.voxel else _key_voxel(get, keys, o)
+        if voxel:
+            _spread(masks, ids, get, keys, changed, voxel, o, workers)
     log.info("compared %d poses: %d of %d IDs changed (%s)", len(poses), len(changed), len(df),
              ", ".join(f"{t}: {(df['type'] == t).sum()}" for t in ("added", "removed", "moved")))
     df.attrs["evidence3d"] = evidence
     return masks, df
+
+
+def _key_voxel(get, keys: dict[tuple[str, int], int], o: CompareOptions) -> float | None:
+    """Voxel side (world units) of ``o.geometry_voxel_px`` pixels at the median depth of the
+    key frames (as :class:`GeometryEvidence` sets it over all poses), when the geometry
+    evidence is off; None without depth."""
+    scales = []
+    for (p, i), _ in sorted(keys.items()):
+        for t in TIMES:
+            f = get((p, t, i))
+            z, cam = f.get("depth"), f.get("camera")
+            if z is not None and cam is not None:
+                zz = z[np.isfinite(z) & (z > 0)]
+                if zz.size:
+                    scales.append(float(np.median(zz)) / float(cam.fx))
+    return o.geometry_voxel_px * float(np.median(scales)) if scales else None
+
+
+class _SpreadPose:
+    """Per pose (``(path, i)``), the pixels each time's mask (``masks[pose]``) gains from the
+    changed objects' voxels ``voxels[t]`` (:func:`gdiff.compare.spread.spread_masks`, depth
+    edges left out): those that also look different at the two times
+    (:func:`gdiff.compare.change.appearance_change`, when both renders have colour). None
+    without depth."""
+
+    def __init__(self, get, masks, voxels: list[np.ndarray], voxel: float, o: CompareOptions):
+        self.get, self.masks, self.voxels, self.voxel, self.o = get, masks, voxels, voxel, o
+
+    def __call__(self, pose):
+        p, i = pose
+        frames = [self.get((p, name, i)) for name in TIMES]
+        if any(f.get("depth") is None or f.get("camera") is None for f in frames):
+            return None
+        out = [spread_masks(voxel_keys(f["depth"], f["camera"], self.voxel,
+                                       self.o.depth_change_rel), v) & ~m
+               for f, v, m in zip(frames, self.voxels, self.masks[pose])]
+        if any(m.any() for m in out) and all(f.get("rgb") is not None for f in frames):
+            differ = appearance_change(frames[0]["rgb"], frames[1]["rgb"], self.o.chroma_tol,
+                                       self.o.ncc_min)
+            out = [m & differ for m in out]
+        return out
+
+
+def _spread(masks, ids: dict[Key, np.ndarray], get, keys: dict[tuple[str, int], int],
+            changed: list, voxel: float, o: CompareOptions, workers: int) -> None:
+    """Carry the changed IDs' surfaces to the poses where other IDs cover them (``masks`` in
+    place; :mod:`gdiff.compare.spread`): the voxels of each time that at least
+    ``o.spread_vote`` of the key frames looking at them show as a changed ID's pixels, and
+    that the same key poses at the other time mostly see empty, join that time's mask at
+    every pose with depth, where the two renders also look different (:class:`_SpreadPose`).
+    """
+    def views(t):
+        for (p, i), _ in sorted(keys.items()):
+            f = get((p, t, i))
+            if f.get("depth") is not None and f.get("camera") is not None:
+                yield (voxel_keys(f["depth"], f["camera"], voxel, o.depth_change_rel),
+                       np.isin(ids[(p, t, i)], changed))
+
+    counts = [count_voxels(views(t)) for t in TIMES]
+    voxels = [object_voxels(counts[k], counts[1 - k], o.spread_vote) for k in range(2)]
+    poses = sorted(masks)
+    added = 0
+    extras = ordered_map(_SpreadPose(get, masks, voxels, voxel, o), poses, workers)
+    for pose, extra in zip(poses, progress(extras, desc="compare: spread", total=len(poses))):
+        if extra is None:
+            continue
+        m0, m1 = masks[pose]
+        added += int(extra[0].sum() + extra[1].sum())
+        masks[pose] = (m0 | extra[0], m1 | extra[1])
+    log.info("spread: %d voxels at t0 and %d at t1 that >= %.0f %% of the key frames seeing them "
+             "show as changed IDs and that the other time left empty; %d pixels of other IDs "
+             "in them that look different at the two times added over %d poses",
+             len(voxels[0]), len(voxels[1]), 100 * o.spread_vote, added, len(poses))
 
 
 def _support_3d(df: pd.DataFrame, ids: dict[Key, np.ndarray], evidence: list[GeometryEvidence],

@@ -60,6 +60,19 @@ def _pack(v: np.ndarray) -> np.ndarray:
     return (v[:, 0] << (2 * _BITS)) | (v[:, 1] << _BITS) | v[:, 2]
 
 
+def voxel_keys_of(points: np.ndarray, voxel: float) -> np.ndarray:
+    """int64 [M] packed keys of the voxels (side ``voxel``, world units) that the finite world
+    points [M, 3] lie in."""
+    return _pack(np.floor(points / voxel)) if len(points) else np.zeros(0, np.int64)
+
+
+def pixel_scale(depth: np.ndarray, camera) -> float | None:
+    """World units per pixel at the median depth of a z-depth map [H, W] seen by ``camera``
+    (median z / fx), over its pixels with a surface; None when it has none."""
+    zz = np.asarray(depth)[np.isfinite(depth) & (np.asarray(depth) > 0)]
+    return float(np.median(zz)) / float(camera.fx) if zz.size else None
+
+
 def _unpack(k: np.ndarray) -> np.ndarray:
     mask = (1 << _BITS) - 1
     return np.stack([(k >> (2 * _BITS)) & mask, (k >> _BITS) & mask, k & mask], -1) - _OFF
@@ -103,9 +116,9 @@ def pose_record(depth0: np.ndarray, depth1: np.ndarray, camera, flagged0: np.nda
         rec.idx[t] = np.flatnonzero(fl)
         flags.append(P[rec.idx[t]].astype(np.float32))
         looks.append(P[lk].astype(np.float32))
-        zz = np.asarray(z)[np.isfinite(z) & (z > 0)]
-        if zz.size:
-            scales.append(float(np.median(zz)) / float(camera.fx))
+        scale = pixel_scale(z, camera)
+        if scale is not None:
+            scales.append(scale)
     return PoseRecord(rec, flags, looks, scales)
 
 
@@ -163,7 +176,7 @@ class GeometryEvidence:
         self._poses[pose] = record.pose
 
     def _keys(self, P: np.ndarray) -> np.ndarray:
-        return _pack(np.floor(P / self.voxel)) if len(P) else np.zeros(0, np.int64)
+        return voxel_keys_of(P, self.voxel)
 
     def finish(self, max_rate: float | None = None) -> dict:
         """Decide the changed voxels; returns counts for the log.
@@ -384,7 +397,7 @@ def evidence_masks(evidence: dict[str, tuple[float | None, np.ndarray, np.ndarra
             if voxel is None or not len(keys[t]):
                 continue
             if voxel not in at:
-                at[voxel] = _pack(np.floor(P[ok] / voxel))
+                at[voxel] = voxel_keys_of(P[ok], voxel)
             m[np.flatnonzero(ok)[np.isin(at[voxel], keys[t])]] = True
         out.append(m.reshape(np.asarray(z).shape))
     return out[0], out[1]

@@ -31,7 +31,7 @@ import cv2
 import numpy as np
 
 from ..track import world_points
-from .geometry import _pack
+from .geometry import voxel_keys_of
 
 # a voxel flagged by a single key frame is never carried: one view's segment is not checked
 MIN_VIEWS = 2
@@ -66,7 +66,7 @@ def voxel_keys(depth: np.ndarray, camera, voxel: float, edge_rel: float | None =
     if edge_rel is not None:
         ok &= ~depth_edges(depth, edge_rel)
     keys = np.full(ok.shape, -1, np.int64)
-    keys[ok] = _pack(np.floor(P[ok] / voxel))
+    keys[ok] = voxel_keys_of(P[ok], voxel)
     return keys
 
 
@@ -115,9 +115,6 @@ def object_voxels(here, other, vote: float, min_views: int = MIN_VIEWS,
 
 
 def spread_masks(keys: np.ndarray, voxels: np.ndarray) -> np.ndarray:
-    """bool [H, W]: pixels whose voxel key (int64 [H, W], :func:`voxel_keys`) is one of
-    ``voxels`` (sorted, from :func:`object_voxels`)."""
-    if not len(voxels):
-        return np.zeros(keys.shape, bool)
-    j = np.minimum(np.searchsorted(voxels, keys), len(voxels) - 1)
-    return (voxels[j] == keys) & (keys >= 0)
+    """bool [H, W]: pixels whose voxel key (int64 [H, W], :func:`voxel_keys`; -1, no surface,
+    is never a voxel) is one of ``voxels`` (from :func:`object_voxels`)."""
+    return np.isin(keys, voxels)

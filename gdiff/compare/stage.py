@@ -33,7 +33,7 @@ from ..track import world_points
 from .change import (HIDDEN_SHARE, CompareOptions, appearance_change, change_masks, decide,
                      pose_stats, replaced)
 from .coverage import DepthView, observed, surface
-from .geometry import (GeometryEvidence, flat_flags, pose_flags, pose_record,
+from .geometry import (GeometryEvidence, flat_flags, pixel_scale, pose_flags, pose_record,
                        write_evidence)
 from .photos import KeyPhoto, alike_components, load_photo
 from .spread import count_voxels, object_voxels, spread_masks, voxel_keys
@@ -248,11 +248,9 @@ def _key_voxel(get, keys: dict[tuple[str, int], int], o: CompareOptions) -> floa
     for (p, i), _ in sorted(keys.items()):
         for t in TIMES:
             f = get((p, t, i))
-            z, cam = f.get("depth"), f.get("camera")
-            if z is not None and cam is not None:
-                zz = z[np.isfinite(z) & (z > 0)]
-                if zz.size:
-                    scales.append(float(np.median(zz)) / float(cam.fx))
+            if f.get("depth") is not None and f.get("camera") is not None:
+                scales.append(pixel_scale(f["depth"], f["camera"]))
+    scales = [s for s in scales if s is not None]
     return o.geometry_voxel_px * float(np.median(scales)) if scales else None
 
 

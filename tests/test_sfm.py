@@ -409,6 +409,34 @@ def test_word_histograms_rank_images_of_one_place_first():
     assert ("before/004.png", "before/005.png") in with_order
 
 
+def test_retrieval_pairs_give_every_image_partners_in_every_set():
+    # two visits of one place under different light: every image resembles the images of its
+    # own visit more than any of the other, so a ranking over all images would pair visits
+    # only with themselves
+    rng = np.random.default_rng(1)
+    place = rng.normal(size=(6, 16))
+    light = rng.normal(size=(2, 16)) * 3.0
+    before = [f"before/{i:03d}.png" for i in range(6)]
+    after = [f"after/{i:03d}.png" for i in range(6)]
+    vec = {}
+    for names, lt in ((before, light[0]), (after, light[1])):
+        for i, n in enumerate(names):
+            v = place[i] + lt + rng.normal(size=16) * 0.1
+            vec[n] = v / np.linalg.norm(v)
+    # the visit dominates the similarity: an image's 4 nearest over all images are its own visit's
+    names = before + after
+    sim = np.stack([vec[n] for n in names]) @ np.stack([vec[n] for n in names]).T
+    np.fill_diagonal(sim, -np.inf)
+    assert all(j // 6 == i // 6 for i in range(12) for j in np.argsort(-sim[i])[:4])
+    pairs = retrieval_pairs([before, after], vec, neighbours=4, overlap=0)
+    cross = {(a, b) for a, b in pairs if a.split("/")[0] != b.split("/")[0]}
+    # 2 per set: each image has partners in the other visit, the most similar first
+    for i in range(6):
+        assert ("after/%03d.png" % i, "before/%03d.png" % i) in cross
+    assert all(any(n in p for p in cross) for n in names)
+    assert len(pairs) <= 12 * 4
+
+
 def test_core_images_spread_over_every_set():
     images = [(f"b{i:02d}", "before") for i in range(40)] + \
         [(f"a{i:02d}", "after") for i in range(40)] + [("e0", "eval_before"), ("e1", "eval_after")]

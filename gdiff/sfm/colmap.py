@@ -16,7 +16,7 @@ from ..errors import PosesError
 from .images import _check_unregistered, _count
 from .match import all_pairs, match_in_processes
 from .options import PosesOptions
-from .pairs import retrieval_pairs, sequential_pairs, word_histograms
+from .pairs import per_set_neighbours, retrieval_pairs, sequential_pairs, word_histograms
 from .resample import shares_one_camera
 
 log = logging.getLogger("gdiff.sfm")
@@ -295,9 +295,10 @@ def _run_colmap(root: Path, work: Path, images, sizes, opts: PosesOptions):
                                                   seed=opts.seed)))
         pairs = retrieval_pairs(sets, vectors, opts.retrieval_neighbours,
                                 opts.sequential_overlap)
-        log.info("matching: retrieval (%d pairs: the %d most similar images by visual words + "
-                 "%d capture-order neighbours per image)", len(pairs),
-                 opts.retrieval_neighbours, opts.sequential_overlap)
+        log.info("matching: retrieval (%d pairs: per image the %d most similar images by "
+                 "visual words of each of the %d sets + %d capture-order neighbours)",
+                 len(pairs), per_set_neighbours(opts.retrieval_neighbours, len(sets)), len(sets),
+                 opts.sequential_overlap)
     else:
         pairs = sequential_pairs(sets, opts.sequential_overlap, opts.sequential_links)
         log.info("matching: sequential (%d pairs: %d capture-order neighbours + %d links per "

@@ -19,17 +19,19 @@ class PosesOptions:
         matcher: ``auto`` (``exhaustive`` up to ``exhaustive_max_images`` images, else
             ``retrieval``), ``exhaustive`` (all pairs: cost grows with the square of the image
             count), ``retrieval`` (each image with its ``retrieval_neighbours`` most similar
-            images by a bag of visual words learnt from the scene's own features, plus its
-            ``sequential_overlap`` capture-order neighbours; no pre-trained vocabulary) or
+            images by a bag of visual words learnt from the scene's own features, shared
+            evenly among the sets so that every image has partners in the other visit, plus
+            its ``sequential_overlap`` capture-order neighbours; no pre-trained vocabulary) or
             ``sequential`` (capture-order neighbours within each set + evenly spaced links
             between all images).
         exhaustive_max_images: image count up to which ``auto`` matches all pairs (beyond it
-            the pair count grows linearly); None = while all pairs are no more than retrieval
-            would match (``2 * (retrieval_neighbours + sequential_overlap) + 1`` images). All
-            pairs give the most accurate poses: retrieval finds similar views, which are not
-            the wide-baseline pairs that pin the geometry down. With known poses, larger sets
-            are matched by camera proximity instead.
-        retrieval_neighbours: most similar images each image is matched with (``retrieval``).
+            the pair count grows linearly); None (the default) = while all pairs are no more
+            than retrieval would match (``2 * (retrieval_neighbours + sequential_overlap) + 1``
+            images), so the cost of matching never grows faster than the image count. A
+            number above that buys all pairs for larger sets, quadratic in the image count.
+            With known poses, larger sets are matched by camera proximity instead.
+        retrieval_neighbours: most similar images each image is matched with (``retrieval``),
+            the same number from each set (at least one).
         sequential_overlap: capture-order neighbours matched on each side (``sequential``,
             ``retrieval``).
         sequential_links: evenly spaced images of every set each image is also matched with.
@@ -111,7 +113,7 @@ class PosesOptions:
 
     source: str = "auto"
     matcher: str = "auto"
-    exhaustive_max_images: int | None = 100
+    exhaustive_max_images: int | None = None
     retrieval_neighbours: int = 20
     sequential_overlap: int = 8
     sequential_links: int = 6

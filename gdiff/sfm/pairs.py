@@ -127,28 +127,46 @@ def word_histograms(descriptors: list[np.ndarray], num_words: int = 256,
     return _unit_rows(tf * idf)
 
 
+def per_set_neighbours(neighbours: int, n_sets: int) -> int:
+    """The most similar images :func:`retrieval_pairs` takes from each of ``n_sets`` sets:
+    ``neighbours`` shared evenly among them, rounded up, at least one."""
+    return max(1, -(-neighbours // max(n_sets, 1)))
+
+
 def retrieval_pairs(groups: list[list[str]], vectors: dict[str, np.ndarray], neighbours: int,
                     overlap: int) -> list[tuple[str, str]]:
-    """Image pairs for large, possibly unordered sets: each image with its ``neighbours``
-    most similar images (by ``vectors``, e.g. :func:`word_histograms`) of any set, plus its
-    next ``overlap`` images in capture order within its set (photo series and video frames
-    overlap their neighbours; unordered sets lose nothing but a few pairs).
+    """Image pairs for large, possibly unordered sets: each image with its most similar images
+    (by ``vectors``, e.g. :func:`word_histograms`) *of every set*, ``neighbours`` in all, spread
+    evenly over the sets (at least one per set), plus its next ``overlap`` images in capture
+    order within its set (photo series and video frames overlap their neighbours; unordered
+    sets lose nothing but a few pairs).
+
+    Ranked over all images together, an image's own set fills its list: same light, same
+    capture path. The pairs that tie the before and after visits together then rank low, and
+    the two visits are registered to each other through a few of them.
 
     Returns:
         Unordered, de-duplicated pairs ``(a, b)`` with ``a < b``; at most
-        ``N * (neighbours + overlap)`` of them for N images, so matching grows linearly.
+        ``N * (max(neighbours, len(groups)) + overlap)`` of them for N images, so matching grows
+        linearly.
     """
-    names = [n for g in groups for n in g]
+    groups = [g for g in groups if g]
     pairs = set(sequential_pairs(groups, overlap, 0)) if overlap > 0 else set()
-    if len(names) < 2 or neighbours <= 0:
+    if sum(len(g) for g in groups) < 2 or neighbours <= 0:
         return sorted(pairs)
-    v = np.stack([vectors[n] for n in names])
-    sim = v @ v.T
-    np.fill_diagonal(sim, -np.inf)
-    k = min(neighbours, len(names) - 1)
-    top = np.argpartition(-sim, k - 1, axis=1)[:, :k]
-    for i, row in enumerate(top):
-        for j in row:
-            a, b = names[i], names[j]
-            pairs.add((a, b) if a < b else (b, a))
+    per_set = per_set_neighbours(neighbours, len(groups))
+    vecs = [np.stack([vectors[n] for n in g]) for g in groups]
+    for g, v in zip(groups, vecs):
+        for h, w in zip(groups, vecs):
+            sim = v @ w.T
+            if h is g:
+                np.fill_diagonal(sim, -np.inf)
+            k = min(per_set, len(h) - (h is g))
+            if k <= 0:
+                continue
+            top = np.argpartition(-sim, k - 1, axis=1)[:, :k]
+            for i, row in enumerate(top):
+                for j in row:
+                    a, b = g[i], h[j]
+                    pairs.add((a, b) if a < b else (b, a))
     return sorted(pairs)

@@ -156,12 +156,12 @@ def retrieval_pairs(groups: list[list[str]], vectors: dict[str, np.ndarray], nei
         return sorted(pairs)
     per_set = per_set_neighbours(neighbours, len(groups))
     vecs = [np.stack([vectors[n] for n in g]) for g in groups]
-    for g, v in zip(groups, vecs):
-        for h, w in zip(groups, vecs):
+    for gi, (g, v) in enumerate(zip(groups, vecs)):
+        for hi, (h, w) in enumerate(zip(groups, vecs)):
             sim = v @ w.T
-            if h is g:
+            if gi == hi:  # an image is not its own neighbour
                 np.fill_diagonal(sim, -np.inf)
-            k = min(per_set, len(h) - (h is g))
+            k = min(per_set, len(h) - (gi == hi))
             if k <= 0:
                 continue
             top = np.argpartition(-sim, k - 1, axis=1)[:, :k]

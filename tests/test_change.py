@@ -1377,3 +1377,24 @@ def test_changed_object_merged_at_most_poses_is_carried_there_in_3d():
             assert (m1 & ~truth[i]).sum() <= 0.05 * truth[i].sum(), i
     off, _ = compare_paths(ids, frames, dataclasses.replace(o, spread_vote=0.0), keys=keys)
     assert all(not off[("p1", i)][1].any() for i in range(4, len(cams)))
+
+
+def test_pair_scores_at_once_equal_the_pairwise_definitions():
+    """_pair_moved and _group_instances score all pairs with arrays: the same as
+    :func:`_apart` and :func:`_bhattacharyya` pair by pair, with missing positions (apart)
+    and missing or empty histograms (0)."""
+    from gdiff.compare.change import _apart, _apart_all, _bhattacharyya, _root_hists
+
+    rng = np.random.default_rng(4)
+    pos = [None if k % 7 == 0 else (rng.random(3 if k % 5 else 2) * 2, float(rng.random()))
+           for k in range(40)]
+    hists = [None if k % 9 == 0 else np.zeros((4, 4)) if k % 11 == 0 else rng.random((4, 4)) ** 4
+             for k in range(40)]
+    apart = _apart_all(pos[:25], pos[25:] + pos[:3])
+    B = _root_hists(hists[:25]) @ _root_hists(hists[25:]).T
+    for i in range(25):
+        for j, q in enumerate(pos[25:] + pos[:3]):
+            assert apart[i, j] == _apart(pos[i], q)
+        for j in range(15):
+            assert B[i, j] == pytest.approx(_bhattacharyya(hists[i], hists[25 + j]), abs=1e-12)
+    assert apart.any() and (~apart).any() and (B > 0.5).any() and (B == 0).any()

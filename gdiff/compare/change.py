@@ -882,16 +882,16 @@ def _group_instances(df: pd.DataFrame) -> None:
     ch = df.index[df["changed"]].tolist()
     if not ch:
         return
-    side = [int(df.at[i, "n_t1"] > df.at[i, "n_t0"]) for i in ch]
+    side = (df.loc[ch, "n_t1"].to_numpy() > df.loc[ch, "n_t0"].to_numpy()).astype(int)
     pos = {int(df.at[i, "id"]): k for k, i in enumerate(ch)}
     links = []
     for k, a in enumerate(ch):
         partner = pos.get(int(df.at[a, "partner"]))
         if partner is not None:
             links.append((k, partner))
-        for j in range(k + 1, len(ch)):
-            if side[k] == side[j] and not _apart(df.at[a, "_pos"], df.at[ch[j], "_pos"]):
-                links.append((k, j))
+    records = df.loc[ch, "_pos"].tolist()
+    near = ~_apart_all(records, records) & (side[:, None] == side[None, :])
+    links += list(zip(*np.nonzero(np.triu(near, 1))))
     group = link_groups(len(ch), links)
     for g in np.unique(group):
         members = [ch[k] for k in np.flatnonzero(group == g)]
@@ -925,19 +925,18 @@ def _apart(p0, p1) -> bool:
 
 def _pair_moved(df: pd.DataFrame, o: CompareOptions) -> None:
     """Pair removed and added IDs of the same appearance and size, at different places, into
-    ``moved`` (in place)."""
+    ``moved`` (in place). Every removed-added pair is scored at once (arrays, not a loop over
+    pairs: a sparse capture's renders give thousands of each)."""
     rem = df.index[df["type"] == "removed"].tolist()
     add = df.index[df["type"] == "added"].tolist()
     if not rem or not add:
         return
-    S = np.zeros((len(rem), len(add)))
-    for i, r in enumerate(rem):
-        for j, a in enumerate(add):
-            s0, s1 = df.at[r, "_size"], df.at[a, "_size"]
-            if max(s0, s1) > SIZE_RATIO * min(s0, s1) or not _apart(df.at[r, "_pos"],
-                                                                   df.at[a, "_pos"]):
-                continue
-            S[i, j] = _bhattacharyya(df.at[r, "_hist"], df.at[a, "_hist"])
+    size_r = df.loc[rem, "_size"].to_numpy(float)[:, None]
+    size_a = df.loc[add, "_size"].to_numpy(float)[None, :]
+    ok = np.maximum(size_r, size_a) <= SIZE_RATIO * np.minimum(size_r, size_a)
+    ok &= _apart_all(df.loc[rem, "_pos"].tolist(), df.loc[add, "_pos"].tolist())
+    S = np.where(ok, _root_hists(df.loc[rem, "_hist"].tolist())
+                 @ _root_hists(df.loc[add, "_hist"].tolist()).T, 0.0)
     S[S < o.moved_similarity] = 0.0  # only eligible pairs compete in the assignment
     rows, cols = linear_sum_assignment(-S)
     for i, j in zip(rows, cols):
@@ -946,6 +945,39 @@ def _pair_moved(df: pd.DataFrame, o: CompareOptions) -> None:
             df.at[r, "type"] = df.at[a, "type"] = "moved"
             df.at[r, "partner"] = int(df.at[a, "id"])
             df.at[a, "partner"] = int(df.at[r, "id"])
+
+
+def _root_hists(hists: list) -> np.ndarray:
+    """float [N, B]: the square roots of the normalised, flattened histograms (rows of zeros
+    for missing or empty ones), so that the Bhattacharyya coefficient of two is a dot product
+    (:func:`_bhattacharyya`)."""
+    size = next((np.size(h) for h in hists if h is not None), 0)
+    out = np.zeros((len(hists), size))
+    for k, h in enumerate(hists):
+        if h is not None and h.sum() > 0:
+            out[k] = np.sqrt(np.ravel(h) / h.sum())
+    return out
+
+
+def _apart_all(pos_r: list, pos_a: list) -> np.ndarray:
+    """bool [R, A]: :func:`_apart` of every pair of the records ``pos_r`` and ``pos_a``."""
+    out = np.ones((len(pos_r), len(pos_a)), bool)
+    dims = {len(p[0]) for p in pos_r + pos_a if p is not None}
+    for d in dims:
+        ir = [k for k, p in enumerate(pos_r) if p is not None and len(p[0]) == d]
+        ia = [k for k, p in enumerate(pos_a) if p is not None and len(p[0]) == d]
+        if not ir or not ia:
+            continue
+        P = np.array([pos_r[k][0] for k in ir], float).reshape(len(ir), d)
+        Q = np.array([pos_a[k][0] for k in ia], float).reshape(len(ia), d)
+        sr = np.array([pos_r[k][1] for k in ir], float)
+        sa = np.array([pos_a[k][1] for k in ia], float)
+        ia = np.asarray(ia)
+        for b in range(0, len(ir), 512):  # rows in blocks: bounded memory
+            rows = slice(b, b + 512)
+            dist = np.linalg.norm(P[rows, None, :] - Q[None, :, :], axis=-1)
+            out[np.ix_(ir[rows], ia)] = dist > 0.5 * (sr[rows, None] + sa[None, :])
+    return out
 
 
 def change_masks(ids0: np.ndarray, ids1: np.ndarray, changed_ids) -> tuple[np.ndarray, np.ndarray]:

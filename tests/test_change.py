@@ -422,6 +422,34 @@ def test_view_count_respects_frustum_and_occlusion():
     assert shown[H // 2, W // 2]
 
 
+def test_view_window_sees_a_surface_through_depth_noise_but_not_behind_a_nearer_one():
+    """A key view whose rendered depth is noisy from pixel to pixel (a fit to few photos):
+    tested at one pixel it sees half of the plane it shows, at random; with a window of one
+    pixel it sees all of it, and a surface nearer than the plane still hides it."""
+    from gdiff.compare.coverage import DepthView, observed
+
+    cam = _plane_camera(0.0)
+    z = np.full((H, W), 5.0, np.float32)
+    key = _plane_camera(4.0)
+    zk = np.full((H, W), 5.0, np.float32)
+    zk[(np.arange(H)[:, None] + np.arange(W)[None, :]) % 2 == 1] = 5.6  # +12 %, past tol
+    zk[:, 20:] = 3.0  # a nearer surface hides the plane there
+    u = np.arange(W) + 0.5
+    uk = ((u - W / 2) / 30.0 * 5.0 - 4.0) / 5.0 * 30.0 + W / 2  # each column in the key view
+    inside = (uk >= 0) & (uk < 20)
+    one = observed(z, cam, [DepthView(key, zk)], depth_tol=0.05)
+    win = observed(z, cam, [DepthView(key, zk, window=1)], depth_tol=0.05)
+    assert 0.3 < one[:, inside].mean() < 0.7  # the noise decides, pixel by pixel
+    assert win[:, inside].all()
+    hidden = (uk >= 21) & (uk < W)  # behind the nearer surface, beyond the window's reach
+    assert hidden.any() and not win[:, hidden].any() and not one[:, hidden].any()
+    # the window's range is computed once per view and leaves invalid depths out
+    v = DepthView(key, np.where(np.arange(W)[None, :] < 10, np.nan, zk).astype(np.float32), 1)
+    lo, hi = v.depth_range()
+    assert np.isinf(lo[:, :9]).all() and (lo[:, 11:19] == 5.0).all()
+    assert (hi[:, 11:19] == 5.6).all() and v.depth_range()[0] is lo
+
+
 def test_nearest_views_bound_the_work_but_not_the_result():
     """``max_views``: the views that share most of the frame decide first, the pixels they
     leave unobserved are tested against all views; the mask is the one of all views."""
@@ -599,6 +627,48 @@ def test_texture_only_change_needs_colour_and_a_missing_segment():
     assert loose[2]["confirmed"] and not strict[2]["confirmed"]
 
 
+def test_colour_of_an_added_object_cut_in_pieces_is_measured_against_the_staying_surface():
+    """An added red box on a green and white cover, cut by the segmenter into strips (rows),
+    seen where no depth is trusted (a sparse capture): the ring around a strip leaves out the
+    other strips (they show at t1 only) and widens to the cover, so every strip measures the
+    box against the cover, as the box in one piece does; the ring of its own width around an
+    inner strip, all box, measures the box against itself. A strip farther from the cover
+    than the widest ring keeps that ring, and so does every strip where depth is trusted."""
+    from gdiff.compare.change import SURROUND_REACH, surround_colour_change
+
+    rng = np.random.default_rng(3)
+    o = CompareOptions(min_area=4)
+    cover = np.where(_smooth_texture(rng, (H, W), 1.0)[..., :1] > 0.5, (0.2, 0.6, 0.25),
+                     (0.85, 0.85, 0.8)).astype(np.float32)
+    rgb0, rgb1 = cover.copy(), cover.copy()
+    rgb1[12:] = np.clip(np.array((0.85, 0.1, 0.15))
+                        * (0.8 + 0.4 * _smooth_texture(rng, (H - 12, W), 1.0)), 0, 1)
+    ids0 = np.ones((H, W), np.int64)
+    whole, cut = ids0.copy(), ids0.copy()
+    whole[12:] = 2
+    cut[12:20], cut[20:28], cut[28:36], cut[36:] = 3, 4, 5, 6
+    # a sparse capture: a photo of each time shows every pixel, no depth is trusted
+    shown, unknown = np.ones((H, W), bool), np.zeros((H, W), bool)
+    sparse = dict(observed0=unknown, observed1=unknown, seen0=shown, seen1=shown)
+    one = pose_stats(ids0, whole, o, rgb0, rgb1, **sparse)[2]["surround"]
+    pieces = pose_stats(ids0, cut, o, rgb0, rgb1, **sparse)
+    width = max(2, int(round(o.surround_width * max(H, W))))
+    assert one >= o.confirm_colour
+    for i in (3, 4, 5):
+        assert pieces[i]["confirmed"] and pieces[i]["surround"] == pytest.approx(one, abs=0.1)
+    for i in (4, 5):  # inner strips: their own ring is box only
+        m = cut == i
+        assert surround_colour_change(rgb0, rgb1, m, m, width, o.min_area) < 0.1
+    assert 36 - 11 > SURROUND_REACH * width  # strip 6 lies beyond the widest ring
+    m = cut == 6
+    assert pieces[6]["surround"] == surround_colour_change(rgb0, rgb1, m, m, width, o.min_area)
+    # where the depth is trusted the 3D evidence judges objects: the ring stays next to the
+    # piece (the light right next to it is its light)
+    dense = pose_stats(ids0, cut, o, rgb0, rgb1, observed0=shown, observed1=shown)
+    m = cut == 4
+    assert dense[4]["surround"] == surround_colour_change(rgb0, rgb1, m, m, width, o.min_area)
+
+
 def test_surface_revealed_by_a_moved_object_is_not_added():
     """An object leaves; the table behind it, rendered at t1 with other colours and detail
     (the model saw it from few after photos), is segmented apart together with the object's
@@ -650,6 +720,32 @@ def test_pieces_of_one_object_form_one_instance():
     assert df.loc[2, "instance"] == df.loc[3, "instance"] != df.loc[4, "instance"]
     assert df.loc[5, "instance"] not in (df.loc[2, "instance"], df.loc[4, "instance"])
     assert df.loc[1, "instance"] == 0
+
+
+def test_moved_pairs_join_one_removed_and_one_added_object_but_do_not_chain():
+    """A moved pair makes one instance of the removed object and the added one. Pieces of an
+    added object that pair up as moved with two different removed objects (lookalike pieces
+    of a textured surface cut differently at the two times) would chain all three into one
+    instance: each object stays its own."""
+    from gdiff.compare.change import _group_instances
+
+    def row(i, t, x, partner=0, area=100.0):
+        return dict(id=i, changed=True, type="moved" if partner else ("added" if t else
+                                                                      "removed"),
+                    partner=partner, n_t0=0 if t else 3, n_t1=3 if t else 0, area=area,
+                    _pos=(np.array([x, 0.0, 0.0]), 0.1))
+
+    df = pd.DataFrame([
+        row(1, 0, 0.0, partner=2), row(2, 1, 1.0, partner=1),  # an object moved by 1 m
+        row(3, 1, 5.0, partner=5, area=300.0), row(4, 1, 5.05, partner=6),  # two pieces
+        row(5, 0, 7.0, partner=3), row(6, 0, 9.0, partner=4),  # ... paired with two objects
+        row(7, 0, 9.02),  # a piece of the second of them
+    ])
+    _group_instances(df)
+    inst = dict(zip(df["id"], df["instance"]))
+    assert inst[1] == inst[2] == 1  # named by its largest member (the first on ties)
+    assert inst[3] == inst[4] == 3
+    assert inst[6] == inst[7] and len({inst[3], inst[5], inst[6]}) == 3
 
 
 def test_flat_object_removed_from_or_added_to_a_staying_surface_is_a_change():

@@ -63,6 +63,9 @@ CHANGE_TYPES = ("added", "removed", "moved")
 HIDDEN_SHARE = 0.25
 # largest ratio of two objects' sizes for one to be the other moved, or its replacement
 SIZE_RATIO = 1.5
+# the ring around a piece of a new object (surround_colour_change) is widened up to this many
+# times its width to pass the other pieces and reach the surface around the object
+SURROUND_REACH = 8
 # a surface lies farther at the other time when its depth grew by more than this many times the
 # pose's depth noise (the median relative depth difference of the surfaces that stay)
 RECEDED_NOISE = 2.0
@@ -113,6 +116,12 @@ class CompareOptions:
         longer side (every k-th pixel of every k-th row, k = longer side // observed_grid,
         at least 1; each k x k block takes its tested pixel's answer): coverage changes over
         many pixels, and the test's cost grows with the pixels tested. 0 tests every pixel.
+    observed_window: a key view sees a point when the point's depth lies within the range of
+        depths the view renders within this many pixels of the point's pixel (a fraction of
+        the view's longer side, rounded; widened by ``observed_depth_tol``), not at that one
+        pixel only: a fit to few photos renders a surface's depth with noise between
+        neighbouring pixels and between views (:class:`gdiff.compare.coverage.DepthView`).
+        0 tests the one pixel.
     geometry: also mark surfaces that appear or vanish in 3D (depth voted over all poses,
         :mod:`gdiff.compare.geometry`), whatever their IDs: objects the segmenter merged with
         their support.
@@ -167,6 +176,7 @@ class CompareOptions:
     observed_min_parallax: float = 10.0
     observed_max_views: int = 8
     observed_grid: int = 160
+    observed_window: float = 0.005
     geometry: bool = True
     geometry_voxel_px: float = 4.0
     geometry_vote: float = 0.5
@@ -191,6 +201,9 @@ class CompareOptions:
                               "degrees")
         if self.observed_grid < 0:
             raise ConfigError("config key 'compare.observed_grid' must be >= 0 (0: every pixel)")
+        if not 0 <= self.observed_window < 0.5:
+            raise ConfigError("config key 'compare.observed_window' must lie in [0, 0.5) (a "
+                              "fraction of the frame's longer side; 0: the one pixel)")
         if self.observed_max_views < 0:
             raise ConfigError("config key 'compare.observed_max_views' must be >= 0 (0: every "
                               "key view)")
@@ -309,7 +322,8 @@ def _chroma_hist(rgb: np.ndarray | tuple, mask: np.ndarray, bins: int = 8) -> np
 
 
 def surround_colour_change(rgb0: np.ndarray, rgb1: np.ndarray, region: np.ndarray,
-                           exclude: np.ndarray, width: int, min_px: int = 1) -> float:
+                           exclude: np.ndarray, width: int, min_px: int = 1,
+                           reach: int = 1) -> float:
     """How much the colour of ``region`` (bool [H, W]) changed between the two times once each
     time's local light is divided out: the L1 distance (0: the same, at most 2) between the
     chromaticities (r, g, b summing to 1) of the ratio, per channel in linear light, of the
@@ -319,19 +333,32 @@ def surround_colour_change(rgb0: np.ndarray, rgb1: np.ndarray, region: np.ndarra
 
     A change of light falls on an object and on the surface next to it alike (a moved
     shadow, a warmer sun, a dimmer ambient; means are linear, so even a pattern of shadows
-    over both keeps the ratio); the ratio of their colours keeps the object's own colour. NaN
-    when the region or the ring has fewer than ``min_px`` pixels, or the ring is black."""
+    over both keeps the ratio); the ratio of their colours keeps the object's own colour.
+
+    With ``reach`` > 1, a ring left with fewer than ``min_px`` pixels (``exclude`` covers the
+    region's neighbourhood) is widened, doubling its width, up to ``reach`` x ``width``: the
+    nearest surface that is not excluded stands for the light. NaN when the region or the
+    widest ring has fewer than ``min_px`` pixels, or the ring is black."""
     ys, xs = np.nonzero(region)
     if len(ys) < max(min_px, 1):
         return float("nan")
     h, w = region.shape
-    sl = (slice(max(0, ys.min() - width - 1), min(h, ys.max() + width + 2)),
-          slice(max(0, xs.min() - width - 1), min(w, xs.max() + width + 2)))
+    far = width * max(int(reach), 1)
+    sl = (slice(max(0, ys.min() - far - 1), min(h, ys.max() + far + 2)),
+          slice(max(0, xs.min() - far - 1), min(w, xs.max() + far + 2)))
     reg = region[sl]
+    free = ~reg & ~exclude[sl]
     kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * width + 1, 2 * width + 1))
-    ring = (cv2.dilate(reg.astype(np.uint8), kernel) > 0) & ~reg & ~exclude[sl]
-    if ring.sum() < max(min_px, 1):
-        return float("nan")
+    ring = (cv2.dilate(reg.astype(np.uint8), kernel) > 0) & free
+    k, dist = width, None
+    while ring.sum() < max(min_px, 1):
+        if k >= far:
+            return float("nan")
+        k = min(2 * k, far)
+        if dist is None:  # distance of every pixel of the window to the region (0 on it)
+            dist = cv2.distanceTransform((~reg).astype(np.uint8), cv2.DIST_L2,
+                                         cv2.DIST_MASK_PRECISE)
+        ring = free & (dist <= k)
     chroma = []
     for rgb in (rgb0, rgb1):
         lin = srgb_to_linear(rgb[sl]).astype(np.float64)
@@ -452,6 +479,15 @@ def pose_stats(ids0: np.ndarray, ids1: np.ndarray, o: CompareOptions,
             cache[f"c{time}"] = _normalised_chroma(rgb0 if time == 0 else rgb1)
         return cache[f"c{time}"]
 
+    def only(time: int):
+        """bool [H, W]: the pixels of the IDs that show at ``time`` and not at the other time
+        at this pose."""
+        if f"only{time}" not in cache:
+            a, b = (ids0, ids1) if time == 0 else (ids1, ids0)
+            u = np.setdiff1d(np.unique(a), np.unique(b))
+            cache[f"only{time}"] = np.isin(a, u[u != 0])
+        return cache[f"only{time}"]
+
     def ev_chroma():
         if "chroma" not in cache:
             cache["chroma"] = appearance_change(rgb0, rgb1, o.chroma_tol, o.ncc_min)
@@ -464,6 +500,9 @@ def pose_stats(ids0: np.ndarray, ids1: np.ndarray, o: CompareOptions,
     if known is not None and seen0 is not None and seen1 is not None:
         visible = np.asarray(seen0, bool) & np.asarray(seen1, bool)
     trusted = known if known is not None else True
+    # a pose of a sparse capture: its depth is trusted on less than half of what the photos show
+    sparse = bool(known is not None and visible is not None and visible.any()
+                  and known[visible].mean() < 0.5)
     cont0, cont1 = _continuing(ids0, ids1, o)
     out: dict[int, dict] = {}
     labels = np.union1d(np.unique(ids0), np.unique(ids1))
@@ -563,9 +602,21 @@ def pose_stats(ids0: np.ndarray, ids1: np.ndarray, o: CompareOptions,
                 confirmed = evidence >= o.min_evidence
         surround = float("nan")
         if cand and confirmed and has_rgb and region.any():
-            surround = surround_colour_change(
-                rgb0, rgb1, region, m0 | m1,
-                max(2, int(round(o.surround_width * max(ids0.shape)))), o.min_area)
+            width = max(2, int(round(o.surround_width * max(ids0.shape))))
+            if bool(a0) != bool(a1) and sparse:
+                # the ring stands for the staying surface around the region: other IDs that
+                # show at this time only (pieces of the same new object, cut apart by the
+                # segmenter) are left out of it, and it is widened up to SURROUND_REACH
+                # times to reach the surface around them. Only at a pose whose depth is
+                # mostly not trusted (a sparse capture): there the colour is all that can
+                # tell an object, while with depth the 3D evidence judges objects and the
+                # ring stays next to the region (a moved shadow cuts a surface into pieces
+                # too, and only the light right next to a piece is its light)
+                surround = surround_colour_change(rgb0, rgb1, region, m0 | m1 | only(
+                    0 if a0 else 1), width, o.min_area, reach=SURROUND_REACH)
+            if np.isnan(surround):
+                surround = surround_colour_change(rgb0, rgb1, region, m0 | m1, width,
+                                                  o.min_area)
         rec = dict(area0=a0, area1=a1, candidate=bool(cand), evidence=evidence,
                    similarity=sim, confirmed=confirmed, observed=seen, surround=surround,
                    hidden_by=hidden_by, hidden=hidden)
@@ -875,24 +926,30 @@ def _group_instances(df: pd.DataFrame) -> None:
     Two changed IDs seen at the same time (both mostly at t0, or both mostly at t1) whose
     footprints overlap in the world (not :func:`_apart`: the distance of their median world
     points is below their mean size) are pieces of one object (a segmenter split it, or its
-    track broke); a moved pair is one object too. The instance is named by the ID of its
-    largest member (mean area); 0 for unchanged IDs.
+    track broke). A moved pair joins the removed object and the added one it belongs to when
+    each of the two has no moved pair with any other object: one object left one place for
+    another. (On a sparse capture the renders are cut differently at the two times all over
+    a textured surface; lookalike pieces then pair up as moved between many objects, and
+    joining them all would chain objects across the scene into one.) The instance is named by
+    the ID of its largest member (mean area); 0 for unchanged IDs.
     """
     df["instance"] = 0
     ch = df.index[df["changed"]].tolist()
     if not ch:
         return
     side = (df.loc[ch, "n_t1"].to_numpy() > df.loc[ch, "n_t0"].to_numpy()).astype(int)
-    pos = {int(df.at[i, "id"]): k for k, i in enumerate(ch)}
-    links = []
-    for k, a in enumerate(ch):
-        partner = pos.get(int(df.at[a, "partner"]))
-        if partner is not None:
-            links.append((k, partner))
     records = df.loc[ch, "_pos"].tolist()
     near = ~_apart_all(records, records) & (side[:, None] == side[None, :])
-    links += list(zip(*np.nonzero(np.triu(near, 1))))
-    group = link_groups(len(ch), links)
+    piece = link_groups(len(ch), list(zip(*np.nonzero(np.triu(near, 1)))))
+    pos = {int(df.at[i, "id"]): k for k, i in enumerate(ch)}
+    pairs = set()  # moved pairs between objects (groups of pieces)
+    for k, a in enumerate(ch):
+        partner = pos.get(int(df.at[a, "partner"]))
+        if partner is not None and piece[k] != piece[partner]:
+            pairs.add((min(piece[k], piece[partner]), max(piece[k], piece[partner])))
+    n_pairs = np.bincount(np.array(list(pairs), np.int64).ravel(), minlength=piece.max() + 1)
+    links = [(a, b) for a, b in pairs if n_pairs[a] == 1 and n_pairs[b] == 1]
+    group = link_groups(int(piece.max()) + 1, links)[piece]
     for g in np.unique(group):
         members = [ch[k] for k in np.flatnonzero(group == g)]
         head = max(members, key=lambda i: df.at[i, "area"])

@@ -10,7 +10,12 @@ A pixel of a frame rendered at time t is *observed* when its surface point (rend
 back-projected through the pixel centre) projects into at least ``min_views`` key views of time
 t - the training cameras of that time, rendered at that time - inside the image, in front of
 the camera, and with the key view's rendered depth there agreeing within ``depth_tol``
-(relative): the point is not hidden from that photo behind another surface. Conventions:
+(relative): the point is not hidden from that photo behind another surface. "There" is the
+pixel the point projects to and, with a :class:`DepthView` ``window`` > 0, the pixels within
+that many of it (the point's depth must lie within the range the key view renders around it,
+widened by ``depth_tol``): a model fitted to few photos renders a surface's depth with noise
+from pixel to pixel and from view to view, and a one-pixel test then calls half of a surface
+that every photo shows unseen, at random. Conventions:
 OpenCV camera axes, ``c2w`` camera-to-world, pixel centres at +0.5, z-depth along the camera's
 +z axis (scene units).
 """
@@ -19,6 +24,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import cv2
 import numpy as np
 
 from ..cameras import Camera
@@ -27,10 +33,30 @@ from ..track import world_points
 
 @dataclass
 class DepthView:
-    """A training view rendered at its own time: ``camera`` and its z-depth float [H, W]."""
+    """A training view rendered at its own time: ``camera`` and its z-depth float [H, W].
+
+    ``window`` (pixels, >= 0): a point is tested against the depths the view renders within
+    this many pixels of its own (a square window, see the module docstring); 0 tests the one
+    pixel."""
 
     camera: Camera
     depth: np.ndarray
+    window: int = 0
+
+    def depth_range(self) -> tuple[np.ndarray, np.ndarray]:
+        """float32 [H, W] each: the smallest and largest valid z-depth within ``window`` pixels
+        of each pixel (+inf and -inf where there is none); computed once per view."""
+        if getattr(self, "_range", None) is None:
+            z = np.asarray(self.depth, np.float32)
+            ok = np.isfinite(z) & (z > 0)
+            lo, hi = np.where(ok, z, np.inf), np.where(ok, z, -np.inf)
+            if self.window > 0:
+                k = cv2.getStructuringElement(cv2.MORPH_RECT,
+                                              (2 * self.window + 1, 2 * self.window + 1))
+                lo = cv2.erode(lo.astype(np.float32), k, borderType=cv2.BORDER_REPLICATE)
+                hi = cv2.dilate(hi.astype(np.float32), k, borderType=cv2.BORDER_REPLICATE)
+            self._range = (lo.astype(np.float32), hi.astype(np.float32))
+        return self._range
 
 
 def project_to_depth(P: np.ndarray, finite: np.ndarray, v: DepthView
@@ -54,9 +80,14 @@ def project_to_depth(P: np.ndarray, finite: np.ndarray, v: DepthView
 def _sees(P: np.ndarray, finite: np.ndarray, v: DepthView, depth_tol: float) -> np.ndarray:
     """bool [N]: ``v`` sees the world points ``P`` [N, 3] (see :func:`view_count`)."""
     idx, z, row, col = project_to_depth(P, finite, v)
-    zk = np.asarray(v.depth)[row, col].astype(np.float64)
     seen = np.zeros(len(P), bool)
-    seen[idx[np.isfinite(zk) & (zk > 0) & (np.abs(z - zk) <= depth_tol * np.abs(zk))]] = True
+    if v.window <= 0:
+        zk = np.asarray(v.depth)[row, col].astype(np.float64)
+        seen[idx[np.isfinite(zk) & (zk > 0) & (np.abs(z - zk) <= depth_tol * np.abs(zk))]] = True
+        return seen
+    lo, hi = v.depth_range()
+    lo, hi = lo[row, col].astype(np.float64), hi[row, col].astype(np.float64)
+    seen[idx[(z >= lo * (1 - depth_tol)) & (z <= hi * (1 + depth_tol))]] = True
     return seen
 
 

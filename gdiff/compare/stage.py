@@ -41,17 +41,20 @@ from .spread import count_voxels, object_voxels, spread_masks, voxel_keys
 log = logging.getLogger("gdiff.compare")
 
 
-def key_views(frames, keys: dict[tuple[str, int], int] | None) -> dict[int, list[DepthView]]:
+def key_views(frames, keys: dict[tuple[str, int], int] | None, window: float = 0.0
+              ) -> dict[int, list[DepthView]]:
     """Key views per time for :mod:`gdiff.compare.coverage`: ``keys[(path, i)] = time`` (0 or 1) names
     the path frames that are training cameras of that time; each contributes its camera and
     its depth rendered at that time (``frames``: dict or callable key -> frame dict). Frames
-    without depth or camera are skipped."""
+    without depth or camera are skipped. ``window``: the visibility test's window
+    (:class:`DepthView`) as a fraction of the frame's longer side (``compare.observed_window``)."""
     get = frames if callable(frames) else (lambda k: (frames or {}).get(k, {}))
     out: dict[int, list[DepthView]] = {0: [], 1: []}
     for (p, i), time in sorted((keys or {}).items()):
         f = get((p, TIMES[int(time)], i))
         if f.get("depth") is not None and f.get("camera") is not None:
-            out[int(time)].append(DepthView(f["camera"], f["depth"]))
+            px = int(round(window * max(np.shape(f["depth"]))))
+            out[int(time)].append(DepthView(f["camera"], f["depth"], px))
     return out
 
 
@@ -153,7 +156,7 @@ def compare_paths(ids: dict[Key, np.ndarray], frames: dict[Key, dict] | None,
     o = options or CompareOptions()
     get = frames if callable(frames) else (lambda k: (frames or {}).get(k, {}))
     poses = sorted({(p, i) for p, _, i in ids})
-    views = key_views(get, keys) if keys else None
+    views = key_views(get, keys, o.observed_window) if keys else None
     stats = []
     judged = np.zeros(3, np.int64)  # pixels with a surface at both times; seen; observed
     geo = (GeometryEvidence(o.geometry_voxel_px, o.geometry_vote, o.geometry_min_poses,

@@ -479,13 +479,14 @@ def pose_stats(ids0: np.ndarray, ids1: np.ndarray, o: CompareOptions,
             cache[f"c{time}"] = _normalised_chroma(rgb0 if time == 0 else rgb1)
         return cache[f"c{time}"]
 
+    present = (np.unique(ids0), np.unique(ids1))  # the IDs shown at each time
+
     def only(time: int):
         """bool [H, W]: the pixels of the IDs that show at ``time`` and not at the other time
         at this pose."""
         if f"only{time}" not in cache:
-            a, b = (ids0, ids1) if time == 0 else (ids1, ids0)
-            u = np.setdiff1d(np.unique(a), np.unique(b))
-            cache[f"only{time}"] = np.isin(a, u[u != 0])
+            u = np.setdiff1d(present[time], present[1 - time])
+            cache[f"only{time}"] = np.isin(ids0 if time == 0 else ids1, u[u != 0])
         return cache[f"only{time}"]
 
     def ev_chroma():
@@ -505,7 +506,7 @@ def pose_stats(ids0: np.ndarray, ids1: np.ndarray, o: CompareOptions,
                   and known[visible].mean() < 0.5)
     cont0, cont1 = _continuing(ids0, ids1, o)
     out: dict[int, dict] = {}
-    labels = np.union1d(np.unique(ids0), np.unique(ids1))
+    labels = np.union1d(*present)
     boxes = _boxes(ids0, ids1)
     for t in labels[labels != 0]:
         # each ID is measured inside its bounding box (both times): most IDs at a pose are

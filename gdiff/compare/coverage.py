@@ -23,6 +23,7 @@ OpenCV camera axes, ``c2w`` camera-to-world, pixel centres at +0.5, z-depth alon
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import cached_property
 
 import cv2
 import numpy as np
@@ -46,17 +47,19 @@ class DepthView:
     def depth_range(self) -> tuple[np.ndarray, np.ndarray]:
         """float32 [H, W] each: the smallest and largest valid z-depth within ``window`` pixels
         of each pixel (+inf and -inf where there is none); computed once per view."""
-        if getattr(self, "_range", None) is None:
-            z = np.asarray(self.depth, np.float32)
-            ok = np.isfinite(z) & (z > 0)
-            lo, hi = np.where(ok, z, np.inf), np.where(ok, z, -np.inf)
-            if self.window > 0:
-                k = cv2.getStructuringElement(cv2.MORPH_RECT,
-                                              (2 * self.window + 1, 2 * self.window + 1))
-                lo = cv2.erode(lo.astype(np.float32), k, borderType=cv2.BORDER_REPLICATE)
-                hi = cv2.dilate(hi.astype(np.float32), k, borderType=cv2.BORDER_REPLICATE)
-            self._range = (lo.astype(np.float32), hi.astype(np.float32))
         return self._range
+
+    @cached_property
+    def _range(self) -> tuple[np.ndarray, np.ndarray]:
+        z = np.asarray(self.depth, np.float32)
+        ok = np.isfinite(z) & (z > 0)
+        lo = np.where(ok, z, np.float32(np.inf))
+        hi = np.where(ok, z, np.float32(-np.inf))
+        if self.window > 0:
+            k = cv2.getStructuringElement(cv2.MORPH_RECT, (2 * self.window + 1,) * 2)
+            lo = cv2.erode(lo, k, borderType=cv2.BORDER_REPLICATE)
+            hi = cv2.dilate(hi, k, borderType=cv2.BORDER_REPLICATE)
+        return lo, hi
 
 
 def project_to_depth(P: np.ndarray, finite: np.ndarray, v: DepthView
@@ -81,11 +84,7 @@ def _sees(P: np.ndarray, finite: np.ndarray, v: DepthView, depth_tol: float) -> 
     """bool [N]: ``v`` sees the world points ``P`` [N, 3] (see :func:`view_count`)."""
     idx, z, row, col = project_to_depth(P, finite, v)
     seen = np.zeros(len(P), bool)
-    if v.window <= 0:
-        zk = np.asarray(v.depth)[row, col].astype(np.float64)
-        seen[idx[np.isfinite(zk) & (zk > 0) & (np.abs(z - zk) <= depth_tol * np.abs(zk))]] = True
-        return seen
-    lo, hi = v.depth_range()
+    lo, hi = v.depth_range()  # the view's depth itself with no window
     lo, hi = lo[row, col].astype(np.float64), hi[row, col].astype(np.float64)
     seen[idx[(z >= lo * (1 - depth_tol)) & (z <= hi * (1 + depth_tol))]] = True
     return seen

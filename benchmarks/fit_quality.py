@@ -1,9 +1,9 @@
 """Quality and wall time of the fit stage on scenes with ground truth.
 
 For each scene (a gdiff scene folder with ``gt_cameras.json``, e.g. ../shared/scenes/*, or
-``synth:<preset>`` to generate one): known poses are imported and points triangulated by the
-poses stage (``gdiff.sfm.run_poses``, source known), the 4D model is fitted with
-``FitOptions`` (defaults, or ``--set key=value`` overrides), then
+``synth:<preset>`` to generate one): known poses are imported as they are (not refined) and
+points triangulated by the poses stage (``gdiff.sfm.run_poses``, source known), the 4D model is
+fitted with ``FitOptions`` (defaults, or ``--set key=value`` overrides), then
 
 * training views: PSNR / SSIM from ``fit/quality.csv`` (each image at its own time);
 * wall and CPU time of the fit and the machine's load average at its start and end (on a
@@ -77,7 +77,8 @@ def poses(work: Path, out: Path) -> Path:
 
     pdir = out / "poses"
     if not (pdir / "cameras.json").is_file():
-        run_poses(work, pdir, PosesOptions(source="known"))
+        # the true poses as they are: this measures the fit, not pose refinement
+        run_poses(work, pdir, PosesOptions(source="known", refine_known=False))
     return pdir
 
 

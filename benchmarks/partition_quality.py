@@ -4,8 +4,8 @@ For each scene the script runs the stages the partition needs, with small budget
 folder, then trains the partition and scores its change maps at the eval viewpoints (which are
 in neither training set) against ``eval/masks``:
 
-1. poses: the scene's ``gt_cameras.json`` as known poses, sparse points triangulated by the
-   poses stage (``gdiff.sfm.run_poses``, source ``known``);
+1. poses: the scene's ``gt_cameras.json`` as known poses (as they are, not refined), sparse
+   points triangulated by the poses stage (``gdiff.sfm.run_poses``, source ``known``);
 2. fit: ``gdiff.splat.train.fit_scene`` with the budget given on the command line;
 3. key-pose targets (``change/keyframes.csv``), either
    * ``oracle`` (synthetic scenes only): the exact changed-object masks at every training pose
@@ -189,7 +189,7 @@ def main(argv=None) -> int:
     timing = {}
     t = time.perf_counter()
     if not (res / "poses" / "cameras.json").is_file():
-        run_poses(scene, res / "poses", PosesOptions(source="known"))
+        run_poses(scene, res / "poses", PosesOptions(source="known", refine_known=False))
     timing["poses"] = time.perf_counter() - t
     cams = load_cameras(res / "poses" / "cameras.json")
     t = time.perf_counter()

@@ -91,3 +91,19 @@ def pose_errors(estimated: list[Camera], gt: list[Camera]) -> pd.DataFrame:
     })
     df.attrs.update(scale=s, R=R, t=t, orbit_radius=radius)
     return df
+
+
+def relative_rotation_errors(estimated: list[Camera], gt: list[Camera]) -> np.ndarray:
+    """Angle (degrees) between estimated and true relative rotations ``R_i^T R_j``
+    (camera-to-world rotations) over every pair of images both lists hold (matched by
+    ``image``), float [P]: how well the cameras agree with each other, whatever frame either
+    list is in (no alignment needed, a common rotation of all cameras does not count)."""
+    g = {c.image: c for c in gt}
+    est = sorted((c for c in estimated if c.image in g), key=lambda c: c.image)
+    out = []
+    for i, a in enumerate(est):
+        for b in est[i + 1:]:
+            rel = a.c2w[:3, :3].T @ b.c2w[:3, :3]
+            rel_gt = g[a.image].c2w[:3, :3].T @ g[b.image].c2w[:3, :3]
+            out.append(float(rotation_angle_deg(rel_gt.T @ rel)))
+    return np.asarray(out, dtype=np.float64)

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from gdiff.align import orbit_radius, pose_errors, umeyama_sim3
+from gdiff.align import orbit_radius, pose_errors, relative_rotation_errors, umeyama_sim3
 from gdiff.cameras import cameras_to_json, cameras_to_transforms, load_cameras
 from gdiff.errors import ConfigError, PosesError
 from gdiff.io import write_image
@@ -238,7 +238,7 @@ def test_known_poses_from_cameras_json(synth_tiny_dir, gt_tiny, tmp_path):
     # the ground-truth layout (intrinsics block, 'file' per frame) is accepted as cameras.json
     (scene / "cameras.json").write_text((Path(synth_tiny_dir) / "gt_cameras.json").read_text())
     out = tmp_path / "poses"
-    summary = run_poses(scene, out, PosesOptions(num_threads=2))
+    summary = run_poses(scene, out, PosesOptions(num_threads=2, refine_known=False))
     assert summary["source"] == "known"
     assert summary["registered"] == summary["images"]
     cams = load_cameras(out / "cameras.json")
@@ -246,6 +246,15 @@ def test_known_poses_from_cameras_json(synth_tiny_dir, gt_tiny, tmp_path):
     for c in cams:
         assert np.allclose(c.c2w, gt[c.image].c2w, atol=1e-9)
         assert (c.fx, c.cx) == (gt[c.image].fx, gt[c.image].cx)
+    # refined by default: exact poses stay where they are (in their own frame, no alignment)
+    refined = run_poses(scene, tmp_path / "refined", PosesOptions(num_threads=2))
+    assert refined["refined_images"] == len(cams)
+    assert refined["turned_to_partner"] == refined["turned_in_common"] == []
+    again = load_cameras(tmp_path / "refined" / "cameras.json")
+    # within the precision bundle adjustment reaches on 128 px photos (about half a pixel)
+    assert np.median(relative_rotation_errors(again, gt_tiny)) < 0.3
+    assert pose_errors(again, gt_tiny)["center_err_frac"].median() < 0.01
+    assert all((c.fx, c.cx) == (gt[c.image].fx, gt[c.image].cx) for c in again)
     xyz, _ = read_points(out / "points.ply")
     assert summary["num_points"] > 100
     assert len(xyz) == summary["num_points"] + summary["num_points_seeded"]
@@ -265,7 +274,8 @@ def test_known_poses_from_transforms_json(synth_tiny_dir, gt_tiny, tmp_path):
     (scene / "transforms.json").write_text(json.dumps(data))
     images = [(c.image, c.set) for c in subset]
     out = tmp_path / "poses"
-    summary = run_poses(scene, out, PosesOptions(source="known", num_threads=2), images=images)
+    summary = run_poses(scene, out, PosesOptions(source="known", num_threads=2,
+                                                 refine_known=False), images=images)
     assert summary["source"] == "known" and summary["num_points"] > 50
     cams = load_cameras(out / "cameras.json")
     assert [c.image for c in cams] == [c.image for c in subset]

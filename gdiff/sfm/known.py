@@ -1,6 +1,8 @@
 """Known poses: ``cameras.json`` (gdiff layout, or the ground-truth layout with an
-``intrinsics`` block) or a nerfstudio / instant-ngp ``transforms.json``. The poses are kept as
-given and sparse points are triangulated with pycolmap."""
+``intrinsics`` block) or a nerfstudio / instant-ngp ``transforms.json``. Sparse points are
+triangulated with pycolmap; by default the poses are refined with them first
+(:mod:`gdiff.sfm.refine_known`: a robot's poses are off by a degree or two), else kept as
+given."""
 
 from __future__ import annotations
 
@@ -16,6 +18,7 @@ from .colmap import _extract, _mapper_options, _match, extraction_scale
 from .images import _check_unregistered, _count, set_from_path
 from .options import PosesOptions
 from .pairs import proximity_pairs
+from .refine_known import refine_known_poses
 from .resample import shares_one_camera, to_one_pinhole
 
 log = logging.getLogger("gdiff.sfm")
@@ -120,7 +123,8 @@ def _known_reconstruction(db: Path, cams: dict[str, Camera]):
 def _run_known(root: Path, work: Path, images, sizes, known, opts: PosesOptions):
     """Known poses: bring the photos (in ``root``) to one pinhole camera if the cameras carry
     distortion or differ (:func:`gdiff.sfm.resample.to_one_pinhole`, into ``work/images``),
-    then triangulate matched features with the poses held fixed.
+    then triangulate matched features: with ``opts.refine_known`` refining the poses with them
+    (:func:`gdiff.sfm.refine_known.refine_known_poses`), else with the poses held fixed.
 
     Returns ``(cameras, reconstruction, summary, image_dir)``; ``image_dir`` is ``"images"``
     when undistorted or resampled photos were written, else None."""
@@ -162,13 +166,23 @@ def _run_known(root: Path, work: Path, images, sizes, known, opts: PosesOptions)
                                          opts.sequential_links), "proximity"
     _match(db, work, opts, pairs, extraction_scale(sizes, opts.max_image_size))
     rec = _known_reconstruction(db, matched)
-    tri_dir = work / "triangulated"
-    tri_dir.mkdir()
-    rec = pycolmap.triangulate_points(rec, db, root, tri_dir, clear_points=True,
-                                      options=_mapper_options(
-                                          opts, len(names),
-                                          extraction_scale(sizes, opts.max_image_size)),
-                                      refine_intrinsics=False)
+    scale = extraction_scale(sizes, opts.max_image_size)
+    refined = {}
+    if opts.refine_known:
+        rec, matched, info = refine_known_poses(rec, db, root, work, matched, opts, scale,
+                                                opts.colmap_threads())
+        cams = [matched[n] for n in names]
+        refined = {"refined_images": len(info["refined"]),
+                   "turned_to_partner": sorted(info["paired"]),
+                   "turned_in_common": info["anchored"], "kept_as_given": info["given"],
+                   "refined_rotation_deg": round(info["rotation_deg"], 4),
+                   "refined_centre_frac": round(info["centre_frac"], 6)}
+    else:
+        tri_dir = work / "triangulated"
+        tri_dir.mkdir()
+        rec = pycolmap.triangulate_points(rec, db, root, tri_dir, clear_points=True,
+                                          options=_mapper_options(opts, len(names), scale),
+                                          refine_intrinsics=False)
     if rec.num_points3D() < len(names):
         log.warning(
             "%s: only %d sparse points could be triangulated with the known poses. Causes: "
@@ -180,5 +194,6 @@ def _run_known(root: Path, work: Path, images, sizes, known, opts: PosesOptions)
     summary = {"source": "known", "matcher": matcher, "images": _count(images),
                "registered": _count(images, set(names)), "dropped": dropped,
                "num_models": 1, "num_points": int(rec.num_points3D()),
-               "mean_reprojection_error": float(rec.compute_mean_reprojection_error()), **lens}
+               "mean_reprojection_error": float(rec.compute_mean_reprojection_error()), **lens,
+               **refined}
     return cams, rec, summary, image_dir

@@ -92,6 +92,20 @@ class PosesOptions:
             cells (a dense capture leaves a few per cent empty, which the fit's densification
             fills from the neighbouring points; points seeded there at random depths are
             floaters).
+        refine_known: known poses (cameras.json / transforms.json) are refined by bundle
+            adjustment of the matched features before anything uses them, and mapped back
+            into their own frame and scale (:mod:`gdiff.sfm.refine_known`). A robot's poses
+            are off by a degree or two, 10-30 px on its photos: the visits would disagree by
+            that much, and the comparison would take the shift for change. Images that fewer
+            than ``min_num_matches`` points tie to the others are turned to agree with a photo
+            from the same place, or take the refined images' common correction
+            (:mod:`gdiff.sfm.refine_known`). Off =
+            the poses are used as given (exact poses of a rendered scene, a motion-capture
+            rig).
+        known_max_error: how far off the given poses may be, as a reprojection error in
+            fractions of the longer image side: the first triangulation accepts this much,
+            then the threshold halves each round of the refinement down to
+            ``max_reproj_error``.
         max_unregistered_fraction: if a set (before, after, eval_before, eval_after) loses more
             than this fraction of its images, the stage fails listing them; otherwise they are
             dropped with a warning.
@@ -132,6 +146,8 @@ class PosesOptions:
     seed_points_per_image: int = 1000
     seed_cells: int = 16
     seed_min_empty: float = 0.5
+    refine_known: bool = True
+    known_max_error: float = 0.03
     max_unregistered_fraction: float = 0.2
     num_threads: int = -1
     repeatable: bool = True
@@ -164,6 +180,9 @@ class PosesOptions:
             raise ValueError("resample_max_side must be >= 0 (pixels; 0 = no cap)")
         if self.map_max_images is not None and self.map_max_images < 10:
             raise ValueError("map_max_images must be >= 10 (or null: map all images)")
+        if not 0.0 < self.known_max_error <= 0.5:
+            raise ValueError("known_max_error must lie in (0, 0.5] (fraction of the longer "
+                             "image side)")
         if self.refine_iterations < 0 or self.mapper_attempts < 1:
             raise ValueError("refine_iterations must be >= 0 and mapper_attempts >= 1")
 

@@ -143,6 +143,7 @@ def turn_between(xy1: np.ndarray, xy2: np.ndarray, K1: np.ndarray, K2: np.ndarra
 
     if len(xy1) < 4:
         return None, 0
+    cv2.setRNGSeed(0)  # RANSAC draws from OpenCV's generator: the same photos, the same turn
     H, mask = cv2.findHomography(xy1, xy2, cv2.RANSAC, threshold)
     if H is None:
         return None, 0
@@ -207,6 +208,45 @@ def _place_untied(loose: list[str], placed: dict[str, np.ndarray], cams: dict[st
     return {n: placed[n] for n in loose}, partners, kept
 
 
+def _adjust(rec, db: Path, root: Path, work: Path, opts: PosesOptions, n_images: int,
+            scale: float, wide: float, strict: float, num_threads: int):
+    """Bundle adjustment of poses and points from a model triangulated at ``wide`` pixels:
+    each round adjusts, drops observations beyond the round's threshold, halves it (down to
+    ``strict``) and triangulates the matches the new poses now explain. Returns the model."""
+    import pycolmap
+
+    err, k = wide, 0
+    level = pycolmap.logging.minloglevel
+    while True:
+        pycolmap.bundle_adjustment(rec, _bundle_options(err, num_threads))
+        pycolmap.logging.minloglevel = level  # bundle_adjustment leaves it at INFO
+        pycolmap.ObservationManager(rec).filter_all_points3D(err, 1.5)
+        if err <= strict:
+            return rec
+        err = max(strict, err / 2)
+        k += 1
+        rec = _triangulate(rec, db, root, work / f"tri_{k}", opts, n_images, scale,
+                           err / strict, clear=False)
+
+
+def _map_back(rec, refined: list[str], given: dict[str, np.ndarray], by_name) -> float:
+    """Move the model (in place) by the similarity that takes the adjusted poses of
+    ``refined`` onto their given ones (:func:`_back_to_given`); returns its scale."""
+    import pycolmap
+
+    adjusted = [_c2w_of(by_name[n]) for n in refined]
+    fixed = [given[n] for n in refined]
+    reach = orbit_radius(np.stack([g[:3, 3] for g in fixed]))
+    a, g = _spread(adjusted), _spread(fixed)
+    if rec.num_points3D() and a > 1e-12:  # how far the points lie from the cameras
+        xyz = np.array([p.xyz for p in rec.points3D.values()])
+        reach = float(np.median([np.linalg.norm(xyz - c[:3, 3], axis=1).mean()
+                                 for c in adjusted])) * g / a  # in the given frame's units
+    s, R, t = _back_to_given(adjusted, fixed, reach)
+    rec.transform(pycolmap.Sim3d(s, pycolmap.Rotation3d(R), t))
+    return float(s)
+
+
 def refine_known_poses(rec, db: Path, root: Path, work: Path, cams: dict[str, Camera],
                        opts: PosesOptions, scale: float, num_threads: int = -1
                        ) -> tuple[object, dict[str, Camera], dict]:
@@ -243,29 +283,19 @@ def refine_known_poses(rec, db: Path, root: Path, work: Path, cams: dict[str, Ca
     strict = opts.max_reproj_error * scale
     side = max(max(c.width, c.height) for c in cams.values())
     wide = max(strict, opts.known_max_error * side)
+    given = {n: cams[n].c2w for n in names}
     rec = _triangulate(rec, db, root, work / "tri_wide", opts, len(names), scale,
                        wide / strict, clear=True)
     first = int(rec.num_points3D())
-    err, k = wide, 0
-    level = pycolmap.logging.minloglevel
-    while True:
-        pycolmap.bundle_adjustment(rec, _bundle_options(err, num_threads))
-        pycolmap.logging.minloglevel = level  # bundle_adjustment leaves it at INFO
-        pycolmap.ObservationManager(rec).filter_all_points3D(err, 1.5)
-        if err <= strict:
-            break
-        err = max(strict, err / 2)
-        k += 1
-        rec = _triangulate(rec, db, root, work / f"tri_{k}", opts, len(names), scale,
-                           err / strict, clear=False)
+    info = {"refined": [], "paired": {}, "anchored": [], "given": [], "points_first": first,
+            "common_turn_deg": 0.0, "rotation_deg": 0.0, "centre": 0.0, "centre_frac": 0.0,
+            "scale": 1.0}
+    rec = _adjust(rec, db, root, work, opts, len(names), scale, wide, strict, num_threads)
     by_name = {im.name: im for im in rec.images.values()}
     refined = [n for n in names if n in by_name
                and by_name[n].num_points3D >= opts.min_num_matches]
     loose = [n for n in names if n not in refined]
-    info = {"refined": refined, "paired": {}, "anchored": [], "given": [], "points_first": first,
-            "common_turn_deg": 0.0,
-            "rotation_deg": 0.0, "centre": 0.0, "centre_frac": 0.0, "scale": 1.0}
-    given = {n: cams[n].c2w for n in names}
+    info["refined"] = refined
     if len(refined) < 2:  # nothing ties the images together: every pose stays as given
         for n in names:
             _set_pose(rec, by_name[n], given[n])
@@ -273,24 +303,16 @@ def refine_known_poses(rec, db: Path, root: Path, work: Path, cams: dict[str, Ca
         rec = _triangulate(rec, db, root, work / "tri_given", opts, len(names), scale, 1.0,
                            clear=True)
     else:
-        adjusted = {n: _c2w_of(by_name[n]) for n in refined}
-        xyz = np.array([p.xyz for p in rec.points3D.values()]) if rec.num_points3D() else None
-        reach = orbit_radius(np.stack([given[n][:3, 3] for n in names]))
-        if xyz is not None and len(xyz):  # how far the points lie from the cameras
-            reach = float(np.median([np.linalg.norm(xyz - given[n][:3, 3], axis=1).mean()
-                                     for n in refined]))
-        s, R, t = _back_to_given([adjusted[n] for n in refined], [given[n] for n in refined],
-                                 reach)
-        rec.transform(pycolmap.Sim3d(s, pycolmap.Rotation3d(R), t))
+        s = _map_back(rec, refined, given, by_name)
         new = {n: _c2w_of(by_name[n]) for n in refined}
+        turn = common_turn([given[n] for n in refined], [new[n] for n in refined])
         if loose:  # turned to agree with a photo from the same place (see module)
-            turn = common_turn([given[n] for n in refined], [new[n] for n in refined])
             poses, info["paired"], info["anchored"] = _place_untied(
                 loose, new, cams, _pair_matches(db), opts.min_num_matches, strict, turn)
-            info["common_turn_deg"] = float(rotation_angle_deg(turn))
             for n, c2w in poses.items():
                 new[n] = c2w
                 _set_pose(rec, by_name[n], c2w)
+        info["common_turn_deg"] = float(rotation_angle_deg(turn))
         pycolmap.ObservationManager(rec).filter_all_points3D(strict, 1.5)
         rot = [float(rotation_angle_deg(given[n][:3, :3].T @ new[n][:3, :3])) for n in refined]
         ctr = [float(np.linalg.norm(new[n][:3, 3] - given[n][:3, 3])) for n in refined]

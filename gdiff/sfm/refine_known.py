@@ -13,8 +13,8 @@ viewing directions), so world frame and scale stay the user's.
 An image that too few triangulated points tie to the others (a view no other waypoint
 shares) often shares many matches with the photo of the same waypoint on the other visit: two
 photos from about one place, too close for triangulation, but their matches give the rotation
-between them (a pure rotation's homography). Such an image is turned to agree with that photo
-and moved with it. A pair of which neither is tied: the before photo keeps its given centre
+between them, the given baseline held (:func:`best_turn`). Such an image is turned to agree
+with that photo and moved with it. A pair of which neither is tied: the before photo keeps its given centre
 and takes the correction all refined photos share (their mean turn: a camera mounted a few
 degrees off turns every pose alike), the after photo is turned to agree with it. A robot's
 other pose errors differ from waypoint to waypoint (the localisation at each stop), so a
@@ -152,6 +152,80 @@ def turn_between(xy1: np.ndarray, xy2: np.ndarray, K1: np.ndarray, K2: np.ndarra
     return M, int(mask.sum())
 
 
+def _essential_turn(xy1: np.ndarray, xy2: np.ndarray, K1: np.ndarray, K2: np.ndarray,
+                    threshold: float) -> np.ndarray | None:
+    """``M = R2^T R1`` from the essential matrix of the matches (OpenCV's five-point RANSAC on
+    normalised coordinates, threshold in pixels of camera 1, and its cheirality test), or
+    None."""
+    import cv2
+
+    if len(xy1) < 5:
+        return None
+    n1 = (np.linalg.inv(K1) @ np.c_[xy1, np.ones(len(xy1))].T).T[:, :2]
+    n2 = (np.linalg.inv(K2) @ np.c_[xy2, np.ones(len(xy2))].T).T[:, :2]
+    cv2.setRNGSeed(0)
+    E, mask = cv2.findEssentialMat(n1, n2, np.eye(3), cv2.RANSAC, 0.999,
+                                   threshold / K1[0, 0])
+    if E is None or E.shape != (3, 3):
+        return None
+    _, R, _, _ = cv2.recoverPose(E, n1, n2, np.eye(3), mask=mask)
+    return R
+
+
+def epipolar_errors(xy1: np.ndarray, xy2: np.ndarray, K1: np.ndarray, K2: np.ndarray,
+                    M: np.ndarray, t: np.ndarray) -> np.ndarray:
+    """Per match [M], pixels: the Sampson distance of ``xy1``, ``xy2`` under the relative pose
+    ``X2 = M X1 + t`` (camera-1 to camera-2 coordinates); with no baseline (``t`` ~ 0) the
+    distance of ``xy2`` from ``xy1`` carried by the rotation alone."""
+    h1 = np.c_[xy1, np.ones(len(xy1))]
+    h2 = np.c_[xy2, np.ones(len(xy2))]
+    if np.linalg.norm(t) < 1e-12:
+        q = (K2 @ M @ np.linalg.inv(K1) @ h1.T).T
+        return np.linalg.norm(q[:, :2] / q[:, 2:] - xy2, axis=1)
+    tx = np.array([[0, -t[2], t[1]], [t[2], 0, -t[0]], [-t[1], t[0], 0]])
+    F = np.linalg.inv(K2).T @ tx @ M @ np.linalg.inv(K1)
+    f1, f2 = (F @ h1.T).T, (F.T @ h2.T).T
+    num = np.sum(h2 * f1, axis=1) ** 2
+    return np.sqrt(num / np.maximum(f1[:, 0] ** 2 + f1[:, 1] ** 2 + f2[:, 0] ** 2
+                                    + f2[:, 1] ** 2, 1e-300))
+
+
+def best_turn(xy1: np.ndarray, xy2: np.ndarray, K1: np.ndarray, K2: np.ndarray,
+              M0: np.ndarray, t: np.ndarray, threshold: float
+              ) -> tuple[np.ndarray, int, str]:
+    """The rotation ``M = R2^T R1`` between two photos that their matches (pixels [M, 2])
+    support best, with the camera-1 centre at ``t`` in camera 2's axes (the given baseline,
+    ``X2 = M X1 + t``): the given one ``M0``, the pure rotation of their homography
+    (:func:`turn_between`: photos from one place) or the rotation of their essential matrix
+    (photos a few centimetres apart at close range, where a homography leaves parallax
+    unexplained). The one with the most matches within ``threshold`` pixels
+    (:func:`epipolar_errors`) wins, ties to the lower median, and the given one on equal
+    terms; it is then refined to the rotation whose errors over all matches are least (robust
+    soft-L1 loss, the baseline held). Returns ``(M, inliers, "given" | "homography" |
+    "essential")``: the start it was refined from."""
+    from scipy.optimize import least_squares
+    from scipy.spatial.transform import Rotation
+
+    found = [("given", M0), ("homography", turn_between(xy1, xy2, K1, K2, threshold)[0]),
+             ("essential", _essential_turn(xy1, xy2, K1, K2, threshold))]
+    best = None
+    for how, M in found:
+        if M is None:
+            continue
+        e = epipolar_errors(xy1, xy2, K1, K2, M, t)
+        key = (int((e < threshold).sum()), -float(np.median(e)))
+        if best is None or key > best[0]:
+            best = (key, M, how)
+    (n, _), M, how = best
+    if n >= 5:  # then the rotation that fits those matches best, the baseline held
+        fit = least_squares(lambda v: epipolar_errors(
+            xy1, xy2, K1, K2, Rotation.from_rotvec(v).as_matrix() @ M, t), np.zeros(3),
+            loss="soft_l1", f_scale=0.5 * threshold)
+        M = Rotation.from_rotvec(fit.x).as_matrix() @ M
+        n = int((epipolar_errors(xy1, xy2, K1, K2, M, t) < threshold).sum())
+    return M, n, how
+
+
 def common_turn(before: list[np.ndarray], after: list[np.ndarray]) -> np.ndarray:
     """The mean (scipy's chordal L2 mean) of the world-frame rotations ``R_after R_before^T``
     [3, 3] that took each camera-to-world pose of ``before`` to the same camera's ``after``:
@@ -167,15 +241,15 @@ def _place_untied(loose: list[str], placed: dict[str, np.ndarray], cams: dict[st
                   matches, min_matches: int, threshold: float,
                   turn: np.ndarray | None = None) -> tuple[dict, dict, list]:
     """Poses for the images bundle adjustment could not tie to the others (camera-to-world
-    [4, 4], in ``placed``'s frame): each is turned to agree with the placed image it shares
-    the most matches with (at least ``min_matches`` under a pure rotation, :func:`turn_between`:
-    an image that shares matches but no triangulated points was taken from about the same
-    place, e.g. the same waypoint on the other visit) and moved with it. Images that share
+    [4, 4], in ``placed``'s frame): each is turned to agree with the placed image whose matches
+    support a turn best (at least ``min_matches`` of them, :func:`best_turn`: an image that
+    shares matches but no triangulated points was taken from about the same place, e.g. the
+    same waypoint on the other visit; the given turn may win) and moved with it. Images that share
     matches only with other untied ones: the first (capture order, before first) keeps its
     given centre, turned about it by ``turn`` [3, 3] (world frame; the correction the refined
     images share, :func:`common_turn`; None: not turned), and the others are turned to agree
-    with it. Returns ``(poses, partners, anchored)``: the new poses, image -> the image it was
-    turned to, the images placed the first way."""
+    with it. Returns ``(poses, partners, anchored)``: the new poses, image -> (the image it
+    was turned to, which turn won), the images placed the first way."""
     given = {n: cams[n].c2w for n in loose}
     placed = dict(placed)
     partners, kept = {}, []
@@ -186,9 +260,12 @@ def _place_untied(loose: list[str], placed: dict[str, np.ndarray], cams: dict[st
             for p in placed:
                 if (u, p) not in matches:
                     continue
-                M, k = turn_between(*matches[(u, p)], cams[u].K, cams[p].K, threshold)
-                if M is not None and k >= min_matches and (best is None or k > best[2]):
-                    best = (u, p, k, M)
+                Ru, Rp = cams[u].c2w[:3, :3], cams[p].c2w[:3, :3]
+                t = Rp.T @ (cams[u].center - cams[p].center)  # u's centre in p's axes
+                M, k, how = best_turn(*matches[(u, p)], cams[u].K, cams[p].K, Rp.T @ Ru, t,
+                                      threshold)
+                if k >= min_matches and (best is None or k > best[2]):
+                    best = (u, p, k, M, how)
         if best is None:  # nothing left shares enough with a placed image: anchor the first
             u = left[0]
             placed[u] = given[u].copy()
@@ -197,13 +274,13 @@ def _place_untied(loose: list[str], placed: dict[str, np.ndarray], cams: dict[st
             kept.append(u)
             left.remove(u)
             continue
-        u, p, _, M = best
+        u, p, _, M, how = best
         Rp, Rp0 = placed[p][:3, :3], cams[p].c2w[:3, :3]
         c2w = np.eye(4)
         c2w[:3, :3] = Rp @ M
         c2w[:3, 3] = placed[p][:3, 3] + Rp @ Rp0.T @ (cams[u].center - cams[p].center)
         placed[u] = c2w
-        partners[u] = p
+        partners[u] = (p, how)
         left.remove(u)
     return {n: placed[n] for n in loose}, partners, kept
 
@@ -268,7 +345,7 @@ def refine_known_poses(rec, db: Path, root: Path, work: Path, cams: dict[str, Ca
     Returns:
         ``(rec, cams, info)``: the refined model (points triangulated at ``max_reproj_error``),
         the cameras with refined poses, and ``info``: ``refined`` (image names),
-        ``paired`` (image -> the image it was turned to agree with, see
+        ``paired`` (image -> (the image it was turned to agree with, which turn won), see
         :func:`_place_untied`), ``anchored`` (untied images given the refined images' common
         correction, ``common_turn_deg``), ``given`` (all images, kept as given, when fewer than
         two could be refined), ``rotation_deg`` /
@@ -328,7 +405,8 @@ def refine_known_poses(rec, db: Path, root: Path, work: Path, cams: dict[str, Ca
              "camera spread); %d tied to the others by fewer than %d points%s%s",
              first, wide, rec.num_points3D(), strict, len(info["refined"]), info["rotation_deg"],
              info["centre"], 100 * info["centre_frac"], len(loose), opts.min_num_matches,
-             "".join(f"; {n} turned to agree with {m}" for n, m in info["paired"].items()),
+             "".join(f"; {n} turned to agree with {m} ({how} turn)"
+                     for n, (m, how) in info["paired"].items()),
              "".join(f"; {n} turned by the refined images' common correction "
                      f"({info['common_turn_deg']:.2f} deg)" for n in info["anchored"])
              + (f"; all {len(names)} kept as given: too few points tie any two images"

@@ -14,11 +14,11 @@ An image that too few triangulated points tie to the others (a view no other way
 shares) often shares many matches with the photo of the same waypoint on the other visit: two
 photos from about one place, too close for triangulation, but their matches give the rotation
 between them, the given baseline held (:func:`best_turn`). Such an image is turned to agree
-with that photo and moved with it. A pair of which neither is tied: the before photo keeps its given centre
-and takes the correction all refined photos share (their mean turn: a camera mounted a few
-degrees off turns every pose alike), the after photo is turned to agree with it. A robot's
-other pose errors differ from waypoint to waypoint (the localisation at each stop), so a
-neighbouring waypoint's own correction does not carry over.
+with that photo and moved with it. Of a pair of which neither is tied, the before photo keeps
+its given centre and takes the correction all refined photos share (their mean turn: a camera
+mounted a few degrees off turns every pose alike), and the after photo is turned to agree with
+it. A robot's other pose errors differ from waypoint to waypoint (the localisation at each
+stop), so a neighbouring waypoint's own correction does not carry over.
 
 Conventions: ``Camera.c2w`` is camera-to-world (OpenCV axes: x right, y down, z forward);
 pycolmap images hold world-to-camera (``cam_from_world``).

@@ -20,9 +20,10 @@ Two sources of poses:
   ``intrinsics`` block) or a nerfstudio / instant-ngp ``transforms.json`` in the scene folder.
   Sparse points are triangulated with pycolmap from features matched between the images
   (pose-proximity pairs for large sets), and the poses are refined with them by bundle
-  adjustment (:mod:`gdiff.sfm.refine_known`; ``refine_known: false`` keeps them as given). Lens distortion given in
-  the file (OpenCV k1, k2, p1, p2[, k3]) is removed first: the photos are undistorted once
-  (:mod:`gdiff.sfm.undistort`) and later stages read them from ``images/``.
+  adjustment (:mod:`gdiff.sfm.refine_known`; ``refine_known: false`` keeps them as given).
+  Lens distortion given in the file (OpenCV k1, k2, p1, p2[, k3]) is removed first: the photos
+  are undistorted once (:mod:`gdiff.sfm.undistort`) and later stages read them from
+  ``images/``.
 
 With ``camera_model`` OPENCV / RADIAL / SIMPLE_RADIAL, COLMAP estimates the distortion and the
 photos are undistorted the same way.

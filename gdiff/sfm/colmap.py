@@ -181,6 +181,29 @@ def _mapper_options(opts: PosesOptions, n_images: int, pixel_scale: float = 1.0,
     return mp
 
 
+def bundle_options(max_error: float, num_threads: int, refine_intrinsics: bool = True,
+                   refine_principal_point: bool = False):
+    """pycolmap bundle-adjustment options: Cauchy loss of scale ``max_error / 2`` pixels (a few
+    pixels of a false match have little pull), Ceres stopping at a relative cost decrease of
+    1e-6, the focal length refined with ``refine_intrinsics`` (else every intrinsic held), the
+    principal point only if asked."""
+    import pycolmap
+
+    bo = pycolmap.BundleAdjustmentOptions()
+    bo.print_summary = False
+    bo.refine_focal_length = bool(refine_intrinsics)
+    bo.refine_principal_point = bool(refine_intrinsics and refine_principal_point)
+    if not refine_intrinsics:
+        bo.refine_extra_params = False
+    bo.ceres.loss_function_type = pycolmap.LossFunctionType.CAUCHY
+    bo.ceres.loss_function_scale = 0.5 * max_error
+    bo.ceres.solver_options.num_threads = num_threads
+    # stop when an iteration lowers the cost by < 1e-6 relative (Ceres' own default; COLMAP
+    # sets 0, so every round ran its 100 iterations long after the cameras stopped moving)
+    bo.ceres.solver_options.function_tolerance = 1e-6
+    return bo
+
+
 def refine_model(rec, max_error: float, iterations: int, refine_principal_point: bool = False,
                  num_threads: int = -1) -> dict:
     """Final global refinement of a reconstruction, in place.
@@ -204,16 +227,7 @@ def refine_model(rec, max_error: float, iterations: int, refine_principal_point:
 
     rec.update_point_3d_errors()  # the stored errors may predate edits to the model
     before = float(rec.compute_mean_reprojection_error())
-    bo = pycolmap.BundleAdjustmentOptions()
-    bo.print_summary = False
-    bo.refine_focal_length = True
-    bo.refine_principal_point = bool(refine_principal_point)
-    bo.ceres.loss_function_type = pycolmap.LossFunctionType.CAUCHY
-    bo.ceres.loss_function_scale = 0.5 * max_error
-    bo.ceres.solver_options.num_threads = num_threads
-    # stop when an iteration lowers the cost by < 1e-6 relative (Ceres' own default; COLMAP
-    # sets 0, so every round ran its 100 iterations long after the cameras stopped moving)
-    bo.ceres.solver_options.function_tolerance = 1e-6
+    bo = bundle_options(max_error, num_threads, True, refine_principal_point)
     removed = 0
     level = pycolmap.logging.minloglevel
     for _ in range(iterations):

@@ -14,11 +14,11 @@ from pathlib import Path
 from ..cameras import SET_TIME, Camera, cameras_from_json, cameras_from_transforms
 from ..errors import PosesError, SceneError
 from ..io import read_json
-from .colmap import _extract, _mapper_options, _match, extraction_scale
+from .colmap import _extract, _match, extraction_scale
 from .images import _check_unregistered, _count, set_from_path
 from .options import PosesOptions
 from .pairs import proximity_pairs
-from .refine_known import refine_known_poses
+from .refine_known import refine_known_poses, triangulate
 from .resample import shares_one_camera, to_one_pinhole
 
 log = logging.getLogger("gdiff.sfm")
@@ -178,11 +178,8 @@ def _run_known(root: Path, work: Path, images, sizes, known, opts: PosesOptions)
                    "refined_rotation_deg": round(info["rotation_deg"], 4),
                    "refined_centre_frac": round(info["centre_frac"], 6)}
     else:
-        tri_dir = work / "triangulated"
-        tri_dir.mkdir()
-        rec = pycolmap.triangulate_points(rec, db, root, tri_dir, clear_points=True,
-                                          options=_mapper_options(opts, len(names), scale),
-                                          refine_intrinsics=False)
+        rec = triangulate(rec, db, root, work / "triangulated", opts, len(names), scale, 1.0,
+                          clear=True)
     if rec.num_points3D() < len(names):
         log.warning(
             "%s: only %d sparse points could be triangulated with the known poses. Causes: "

@@ -33,13 +33,13 @@ import numpy as np
 
 from ..align import orbit_radius, rotation_angle_deg, umeyama_sim3
 from ..cameras import Camera
-from .colmap import _c2w_of, _mapper_options
+from .colmap import _c2w_of, _mapper_options, bundle_options
 from .options import PosesOptions
 
 log = logging.getLogger("gdiff.sfm")
 
 
-def _triangulate(rec, db: Path, root: Path, out: Path, opts: PosesOptions, n_images: int,
+def triangulate(rec, db: Path, root: Path, out: Path, opts: PosesOptions, n_images: int,
                  scale: float, relax: float, clear: bool):
     """pycolmap's point triangulator on ``rec``'s poses (held fixed), thresholds ``relax`` x
     ``opts.max_reproj_error`` (extraction pixels x ``scale``); returns the new model."""
@@ -50,23 +50,6 @@ def _triangulate(rec, db: Path, root: Path, out: Path, opts: PosesOptions, n_ima
                                        options=_mapper_options(opts, n_images, scale,
                                                                relax=relax),
                                        refine_intrinsics=False)
-
-
-def _bundle_options(error: float, num_threads: int):
-    """Bundle adjustment of poses and points only (known intrinsics held), Cauchy loss of
-    scale ``error / 2`` pixels."""
-    import pycolmap
-
-    bo = pycolmap.BundleAdjustmentOptions()
-    bo.print_summary = False
-    bo.refine_focal_length = False
-    bo.refine_principal_point = False
-    bo.refine_extra_params = False
-    bo.ceres.loss_function_type = pycolmap.LossFunctionType.CAUCHY
-    bo.ceres.loss_function_scale = 0.5 * error
-    bo.ceres.solver_options.num_threads = num_threads
-    bo.ceres.solver_options.function_tolerance = 1e-6
-    return bo
 
 
 def _set_pose(rec, image, c2w: np.ndarray) -> None:
@@ -254,16 +237,19 @@ def _place_untied(loose: list[str], placed: dict[str, np.ndarray], cams: dict[st
     placed = dict(placed)
     partners, kept = {}, []
     left = list(loose)
+    scored = {}  # (u, p) -> best_turn: it reads the given poses only, so once per pair
     while left:
         best = None
         for u in left:
             for p in placed:
                 if (u, p) not in matches:
                     continue
-                Ru, Rp = cams[u].c2w[:3, :3], cams[p].c2w[:3, :3]
-                t = Rp.T @ (cams[u].center - cams[p].center)  # u's centre in p's axes
-                M, k, how = best_turn(*matches[(u, p)], cams[u].K, cams[p].K, Rp.T @ Ru, t,
-                                      threshold)
+                if (u, p) not in scored:
+                    Ru, Rp = cams[u].c2w[:3, :3], cams[p].c2w[:3, :3]
+                    t = Rp.T @ (cams[u].center - cams[p].center)  # u's centre in p's axes
+                    scored[(u, p)] = best_turn(*matches[(u, p)], cams[u].K, cams[p].K,
+                                               Rp.T @ Ru, t, threshold)
+                M, k, how = scored[(u, p)]
                 if k >= min_matches and (best is None or k > best[2]):
                     best = (u, p, k, M, how)
         if best is None:  # nothing left shares enough with a placed image: anchor the first
@@ -295,15 +281,15 @@ def _adjust(rec, db: Path, root: Path, work: Path, opts: PosesOptions, n_images:
     err, k = wide, 0
     level = pycolmap.logging.minloglevel
     while True:
-        pycolmap.bundle_adjustment(rec, _bundle_options(err, num_threads))
+        pycolmap.bundle_adjustment(rec, bundle_options(err, num_threads, refine_intrinsics=False))
         pycolmap.logging.minloglevel = level  # bundle_adjustment leaves it at INFO
         pycolmap.ObservationManager(rec).filter_all_points3D(err, 1.5)
         if err <= strict:
             return rec
         err = max(strict, err / 2)
         k += 1
-        rec = _triangulate(rec, db, root, work / f"tri_{k}", opts, n_images, scale,
-                           err / strict, clear=False)
+        rec = triangulate(rec, db, root, work / f"tri_{k}", opts, n_images, scale,
+                          err / strict, clear=False)
 
 
 def _map_back(rec, refined: list[str], given: dict[str, np.ndarray], by_name) -> float:
@@ -361,8 +347,8 @@ def refine_known_poses(rec, db: Path, root: Path, work: Path, cams: dict[str, Ca
     side = max(max(c.width, c.height) for c in cams.values())
     wide = max(strict, opts.known_max_error * side)
     given = {n: cams[n].c2w for n in names}
-    rec = _triangulate(rec, db, root, work / "tri_wide", opts, len(names), scale,
-                       wide / strict, clear=True)
+    rec = triangulate(rec, db, root, work / "tri_wide", opts, len(names), scale,
+                      wide / strict, clear=True)
     first = int(rec.num_points3D())
     info = {"refined": [], "paired": {}, "anchored": [], "given": [], "points_first": first,
             "common_turn_deg": 0.0, "rotation_deg": 0.0, "centre": 0.0, "centre_frac": 0.0,
@@ -377,8 +363,8 @@ def refine_known_poses(rec, db: Path, root: Path, work: Path, cams: dict[str, Ca
         for n in names:
             _set_pose(rec, by_name[n], given[n])
         info.update(refined=[], given=names)
-        rec = _triangulate(rec, db, root, work / "tri_given", opts, len(names), scale, 1.0,
-                           clear=True)
+        rec = triangulate(rec, db, root, work / "tri_given", opts, len(names), scale, 1.0,
+                          clear=True)
     else:
         s = _map_back(rec, refined, given, by_name)
         new = {n: _c2w_of(by_name[n]) for n in refined}

@@ -448,3 +448,45 @@ def test_time_terms_can_be_switched_off_and_resumed(scene, tmp_path):
     assert all("dopacity" not in k and "dsh0" not in k for k in seen)
     model = load_model(tmp_path / "model.pt", "cpu")  # files load; no change over time
     assert torch.equal(model.splats["dopacity"], torch.zeros(len(model)))
+
+
+def _opacity_changes(model) -> float:
+    """Share of the Gaussians opaque at either time (> 0.3) whose opacity differs between the
+    times by more than 0.5."""
+    with torch.no_grad():
+        o0, o1 = model.at_time(0.0).opacities, model.at_time(1.0).opacities
+    vis = torch.maximum(o0, o1) > 0.3
+    return float(((o1 - o0).abs()[vis] > 0.5).float().mean())
+
+
+def test_time_change_weight_shares_gaussians_between_the_times(scene, fitted, tmp_path):
+    """With ``time_change_weight`` the times share their Gaussians: far fewer change opacity
+    between t=0 and t=1 than without it (where each time's images can take Gaussians of
+    their own), the training images are fitted as well, and the added and removed objects
+    still show between the t=0 and t=1 renders at novel views."""
+    from gdiff.io import read_mask
+
+    summary = fit_scene(scene.dir, scene.cameras, scene.points, tmp_path,
+                        small_options(time_change_weight=0.01), device="cpu")
+    free, shared = load_model(fitted.out / "model.pt", "cpu"), load_model(tmp_path / "model.pt",
+                                                                          "cpu")
+    c_free, c_shared = _opacity_changes(free), _opacity_changes(shared)
+    print("opacity changes", c_free, c_shared, "psnr", [(fitted.summary[k], summary[k])
+                                                         for k in ("psnr_t0", "psnr_t1")])
+    assert c_shared < 0.5 * c_free, (c_shared, c_free)
+    for k in ("psnr_t0", "psnr_t1"):
+        assert summary[k] > fitted.summary[k] - 0.5, (k, summary[k], fitted.summary[k])
+    log = pd.read_csv(tmp_path / "train_log.csv")
+    assert "time_change" in log.columns and log["time_change"].notna().all()
+    cams = [c for c in load_cameras(scene.cameras) if c.set == "eval_after"]
+    with torch.no_grad():
+        r0 = render(shared, cams, 0.0, render_mode="RGB")["rgb"].clamp(0, 1)
+        r1 = render(shared, cams, 1.0, render_mode="RGB")["rgb"].clamp(0, 1)
+    inside, outside = [], []
+    for i, cam in enumerate(cams):
+        mask = torch.from_numpy(read_mask(scene.dir / "eval" / "masks" / cam.image.split("/")[-1]))
+        resid = (r1[i] - DARKEN * r0[i]).abs().mean(-1)
+        inside.append(resid[mask])
+        outside.append(resid[~mask])
+    d_in, d_out = float(torch.cat(inside).mean()), float(torch.cat(outside).mean())
+    assert d_in > 3.0 * d_out, (d_in, d_out)

@@ -33,7 +33,13 @@ transparent) state and novel views at that time show holes. Gating the terms let
 parameters take the whole update instead ("no change without evidence"); two views, the
 fewest that locate a change in 3D, are the default. The counts (``DensifyStats.seen``) are
 kept for the whole fit and inherited by clones and split children; the saved model has the
-gate folded in.
+gate folded in. ``time_change_weight`` adds the mean absolute opacity change (``dopacity``,
+logit units, over the Gaussians whose change is learnt) to the loss: without it a change costs
+nothing, and each time's images take Gaussians of their own wherever they are fitted a little
+better so. The two renders of one pose then differ in fine detail all over the scene, which the
+comparison must tell from a change; with it the times share their Gaussians, and an opacity
+changes where the images of the two times disagree. It is off (0) by default: the price also
+weakens the change of a small object.
 
 Each iteration renders one training image at the working resolution (``max_side``); every
 image is used once per epoch, before and after images alternating (random order within a
@@ -114,6 +120,7 @@ class FitOptions:
     plane_tv_weight: float = 0.0002  # TV of the HexPlane spatial planes
     time_smooth_weight: float = 0.001  # 2nd difference along t (needs time_resolution >= 3)
     time_l1_weight: float = 0.0001  # |1 - time plane|: prefer no change over time
+    time_change_weight: float = 0.0  # mean |dopacity|: prefer Gaussians shared by the times
     background: str = "black"  # black | white | random (random colour per step)
     # learning rates (means: x scene extent, exponential decay over the run)
     lr_means: float = 1.6e-4
@@ -196,7 +203,8 @@ class FitOptions:
             raise ValueError(f"coarse_downscale must be >= 1, got {self.coarse_downscale}")
         for name in ("coarse_iters", "fine_iters", "max_side", "densify_every", "log_every",
                      "checkpoint_every", "sh_degree_interval", "max_gaussians",
-                     "opacity_reset_every", "reset_hold", "time_min_views"):
+                     "opacity_reset_every", "reset_hold", "time_min_views",
+                     "time_change_weight"):
             if getattr(self, name) < 0:
                 raise ValueError(f"{name} must be >= 0, got {getattr(self, name)}")
         if self.coarse_iters + self.fine_iters < 1:
@@ -498,6 +506,12 @@ class Trainer:
             loss = loss + (o.plane_tv_weight * terms["plane_tv"]
                            + o.time_smooth_weight * terms["time_smooth"]
                            + o.time_l1_weight * terms["time_l1"])
+        if o.time_change_weight > 0 and "dopacity" in m.splats:
+            gate = self.time_gate()
+            d = m.splats["dopacity"].abs()
+            terms["time_change"] = (d * gate).sum() / gate.sum().clamp(min=1) \
+                if gate is not None else d.mean()
+            loss = loss + o.time_change_weight * terms["time_change"]
         if not torch.isfinite(loss):
             raise FloatingPointError(f"loss is {float(loss.detach())}")
         loss.backward()

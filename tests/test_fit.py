@@ -188,9 +188,18 @@ def test_colour_deformation_absorbs_the_lighting_change(scene, fitted):
 def test_object_changes_show_between_t0_and_t1_at_novel_views(scene, fitted):
     """Added / removed objects: at eval views the t=1 render differs from the t=0 render
     (beyond the global lighting factor) inside the true change mask, not outside it."""
+    d_in, d_out, d_true = _change_at_eval_views(scene, load_model(fitted.out / "model.pt",
+                                                                  "cpu"))
+    assert d_in > 3.0 * d_out, (d_in, d_out)
+    assert d_in > 0.5 * d_true, (d_in, d_true)
+
+
+def _change_at_eval_views(scene, model) -> tuple[float, float, float]:
+    """Mean per-pixel change between the t=0 and t=1 renders of ``model`` that the lighting
+    factor does not explain, at the eval views, inside and outside the true change masks, and
+    the same change of the eval photos inside the masks."""
     from gdiff.io import read_mask
 
-    model = load_model(fitted.out / "model.pt", "cpu")
     cams = [c for c in load_cameras(scene.cameras) if c.set == "eval_after"]
     with torch.no_grad():
         r0 = render(model, cams, 0.0, render_mode="RGB")["rgb"].clamp(0, 1)
@@ -199,17 +208,14 @@ def test_object_changes_show_between_t0_and_t1_at_novel_views(scene, fitted):
     for i, cam in enumerate(cams):
         name = cam.image.split("/")[-1]
         mask = torch.from_numpy(read_mask(scene.dir / "eval" / "masks" / name))
-        # change that the lighting factor does not explain, per pixel
         resid = (r1[i] - DARKEN * r0[i]).abs().mean(-1)
         g0 = torch.from_numpy(read_image(scene.dir / "eval" / "before" / name))
         g1 = torch.from_numpy(read_image(scene.dir / "eval" / "after" / name))
         inside.append(resid[mask])
         outside.append(resid[~mask])
         truth.append((g1 - DARKEN * g0).abs().mean(-1)[mask])
-    d_in, d_out = float(torch.cat(inside).mean()), float(torch.cat(outside).mean())
-    d_true = float(torch.cat(truth).mean())
-    assert d_in > 3.0 * d_out, (d_in, d_out)
-    assert d_in > 0.5 * d_true, (d_in, d_true)
+    return (float(torch.cat(inside).mean()), float(torch.cat(outside).mean()),
+            float(torch.cat(truth).mean()))
 
 
 def test_resume_after_interruption_matches_uninterrupted(scene, tmp_path):
@@ -464,29 +470,15 @@ def test_time_change_weight_shares_gaussians_between_the_times(scene, fitted, tm
     between t=0 and t=1 than without it (where each time's images can take Gaussians of
     their own), the training images are fitted as well, and the added and removed objects
     still show between the t=0 and t=1 renders at novel views."""
-    from gdiff.io import read_mask
-
     summary = fit_scene(scene.dir, scene.cameras, scene.points, tmp_path,
                         small_options(time_change_weight=0.01), device="cpu")
     free, shared = load_model(fitted.out / "model.pt", "cpu"), load_model(tmp_path / "model.pt",
                                                                           "cpu")
     c_free, c_shared = _opacity_changes(free), _opacity_changes(shared)
-    print("opacity changes", c_free, c_shared, "psnr", [(fitted.summary[k], summary[k])
-                                                         for k in ("psnr_t0", "psnr_t1")])
     assert c_shared < 0.5 * c_free, (c_shared, c_free)
     for k in ("psnr_t0", "psnr_t1"):
         assert summary[k] > fitted.summary[k] - 0.5, (k, summary[k], fitted.summary[k])
     log = pd.read_csv(tmp_path / "train_log.csv")
     assert "time_change" in log.columns and log["time_change"].notna().all()
-    cams = [c for c in load_cameras(scene.cameras) if c.set == "eval_after"]
-    with torch.no_grad():
-        r0 = render(shared, cams, 0.0, render_mode="RGB")["rgb"].clamp(0, 1)
-        r1 = render(shared, cams, 1.0, render_mode="RGB")["rgb"].clamp(0, 1)
-    inside, outside = [], []
-    for i, cam in enumerate(cams):
-        mask = torch.from_numpy(read_mask(scene.dir / "eval" / "masks" / cam.image.split("/")[-1]))
-        resid = (r1[i] - DARKEN * r0[i]).abs().mean(-1)
-        inside.append(resid[mask])
-        outside.append(resid[~mask])
-    d_in, d_out = float(torch.cat(inside).mean()), float(torch.cat(outside).mean())
+    d_in, d_out, _ = _change_at_eval_views(scene, shared)
     assert d_in > 3.0 * d_out, (d_in, d_out)

@@ -40,7 +40,7 @@ log = logging.getLogger("gdiff.sfm")
 
 
 def triangulate(rec, db: Path, root: Path, out: Path, opts: PosesOptions, n_images: int,
-                 scale: float, relax: float, clear: bool):
+                scale: float, relax: float, clear: bool):
     """pycolmap's point triangulator on ``rec``'s poses (held fixed), thresholds ``relax`` x
     ``opts.max_reproj_error`` (extraction pixels x ``scale``); returns the new model."""
     import pycolmap

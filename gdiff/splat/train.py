@@ -482,7 +482,8 @@ class Trainer:
         self._set_lrs(it)
         index, view = self._next_view()
         image, K = view.at_scale(it < o.coarse_iters)
-        g = m.at_time(view.time, self.time_gate())
+        gate = self.time_gate()  # this step's: the render and the change price use one
+        g = m.at_time(view.time, gate)
         h, w = image.shape[:2]
         colors, _, meta = rasterize_gaussians(g, view.viewmat, K, w, h, self._background(),
                                               "RGB", o.backend)
@@ -507,7 +508,6 @@ class Trainer:
                            + o.time_smooth_weight * terms["time_smooth"]
                            + o.time_l1_weight * terms["time_l1"])
         if o.time_change_weight > 0 and "dopacity" in m.splats:
-            gate = self.time_gate()
             d = m.splats["dopacity"].abs()
             terms["time_change"] = (d * gate).sum() / gate.sum().clamp(min=1) \
                 if gate is not None else d.mean()

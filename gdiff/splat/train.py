@@ -38,8 +38,8 @@ logit units, over the Gaussians whose change is learnt) to the loss: without it 
 nothing, and each time's images take Gaussians of their own wherever they are fitted a little
 better so. The two renders of one pose then differ in fine detail all over the scene, which the
 comparison must tell from a change; with it the times share their Gaussians, and an opacity
-changes where the images of the two times disagree. It is off (0) by default: the price also
-weakens the change of a small object.
+changes where the images of the two times disagree. The default is a light price: a much
+higher one also weakens the change of a small object.
 
 Each iteration renders one training image at the working resolution (``max_side``); every
 image is used once per epoch, before and after images alternating (random order within a
@@ -120,7 +120,7 @@ class FitOptions:
     plane_tv_weight: float = 0.0002  # TV of the HexPlane spatial planes
     time_smooth_weight: float = 0.001  # 2nd difference along t (needs time_resolution >= 3)
     time_l1_weight: float = 0.0001  # |1 - time plane|: prefer no change over time
-    time_change_weight: float = 0.0  # mean |dopacity|: prefer Gaussians shared by the times
+    time_change_weight: float = 0.001  # mean |dopacity|: prefer Gaussians shared by the times
     background: str = "black"  # black | white | random (random colour per step)
     # learning rates (means: x scene extent, exponential decay over the run)
     lr_means: float = 1.6e-4

@@ -195,6 +195,18 @@ class GaussianModel4D(nn.Module):
                 d = self.splats[name]
                 d.mul_(time_gate.to(d).view((-1,) + (1,) * (d.dim() - 1)))
 
+    def opacity_change(self, time_gate: torch.Tensor | None = None) -> torch.Tensor | None:
+        """Mean absolute per-Gaussian opacity change ``dopacity`` (logit units; scalar,
+        differentiable) over the Gaussians whose change is learnt (``time_gate`` [N] 0/1; all
+        without a gate). None when the model has no opacity change term."""
+        if "dopacity" not in self.splats:
+            return None
+        d = self.splats["dopacity"].abs()
+        if time_gate is None:
+            return d.mean()
+        gate = time_gate.to(d)
+        return (d * gate).sum() / gate.sum().clamp(min=1)
+
     def at_time(self, t, time_gate: torch.Tensor | None = None) -> Gaussians:
         """Deformed, activated Gaussians at time t (see :class:`Gaussians`); differentiable.
         ``time_gate``: see :meth:`raw_at_time`."""

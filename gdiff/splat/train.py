@@ -507,11 +507,10 @@ class Trainer:
             loss = loss + (o.plane_tv_weight * terms["plane_tv"]
                            + o.time_smooth_weight * terms["time_smooth"]
                            + o.time_l1_weight * terms["time_l1"])
-        if o.time_change_weight > 0 and "dopacity" in m.splats:
-            d = m.splats["dopacity"].abs()
-            terms["time_change"] = (d * gate).sum() / gate.sum().clamp(min=1) \
-                if gate is not None else d.mean()
-            loss = loss + o.time_change_weight * terms["time_change"]
+        change = m.opacity_change(gate) if o.time_change_weight > 0 else None
+        if change is not None:
+            terms["time_change"] = change
+            loss = loss + o.time_change_weight * change
         if not torch.isfinite(loss):
             raise FloatingPointError(f"loss is {float(loss.detach())}")
         loss.backward()

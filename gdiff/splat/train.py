@@ -38,8 +38,8 @@ logit units, over the Gaussians whose change is learnt) to the loss: without it 
 nothing, and each time's images take Gaussians of their own wherever they are fitted a little
 better so. The two renders of one pose then differ in fine detail all over the scene, which the
 comparison must tell from a change; with it the times share their Gaussians, and an opacity
-changes where the images of the two times disagree. The default is a light price: a much
-higher one also weakens the change of a small object.
+changes where the images of the two times disagree. The default is a light price; even so it
+can weaken the change of a small, far object, and a much higher one does so more.
 
 Each iteration renders one training image at the working resolution (``max_side``); every
 image is used once per epoch, before and after images alternating (random order within a

@@ -12,8 +12,8 @@ API used by later stages::
 opacity logit over time: ``logit(t) = opacities + (2t - 1) dopacity (+ the field's delta)``, so
 a Gaussian can exist at one time only (an added or removed object) from the first iteration
 on, without waiting for the deformation field; likewise ``dsh0`` [N, 1, 3] changes the
-diffuse colour, ``sh0 + (2t - 1) dsh0`` (lighting: moving shadows are sharper than the
-field's grid) and ``dshN`` [N, K-1, 3] the view-dependent SH, ``shN + (2t - 1) dshN``
+diffuse colour, ``sh0 + (2t - 1) dsh0`` (off by default, the fit's ``time_color``: it can
+draw an added object at the other time too, recoloured) and ``dshN`` [N, K-1, 3] the view-dependent SH, ``shN + (2t - 1) dshN``
 (highlights on glossy surfaces move with the light). With ``reflection_height`` > 0,
 ``reflectivity`` [N] (logit of a strength) and ``model.environment`` add a highlight looked up
 in the mirror direction (:mod:`gdiff.splat.reflection`). Any of them may be absent (the fit's

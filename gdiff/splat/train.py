@@ -165,7 +165,7 @@ class FitOptions:
     max_gaussians: int = 50000  # growth stops here (step cost is about linear in it)
     # deformation field
     time_opacity: bool = True  # per-Gaussian opacity change over time (splats "dopacity")
-    time_color: bool = True  # per-Gaussian diffuse colour change over time (splats "dsh0")
+    time_color: bool = False  # per-Gaussian diffuse colour change over time (splats "dsh0")
     time_specular: bool = True  # per-Gaussian view-dependent colour change (splats "dshN")
     time_min_views: int = 2  # views per time that must see a Gaussian to learn its changes (0: all)
     deform: bool = True

@@ -13,12 +13,13 @@ opacity logit over time: ``logit(t) = opacities + (2t - 1) dopacity (+ the field
 a Gaussian can exist at one time only (an added or removed object) from the first iteration
 on, without waiting for the deformation field; likewise ``dsh0`` [N, 1, 3] changes the
 diffuse colour, ``sh0 + (2t - 1) dsh0`` (off by default, the fit's ``time_color``: it can
-draw an added object at the other time too, recoloured) and ``dshN`` [N, K-1, 3] the view-dependent SH, ``shN + (2t - 1) dshN``
-(highlights on glossy surfaces move with the light). With ``reflection_height`` > 0,
-``reflectivity`` [N] (logit of a strength) and ``model.environment`` add a highlight looked up
-in the mirror direction (:mod:`gdiff.splat.reflection`). Any of them may be absent (the fit's
-``time_opacity`` / ``time_color`` / ``time_specular``; files from before ``dshN`` load with
-no view-dependent change). While fitting, ``time_gate`` [N] (see :meth:`raw_at_time`)
+draw an added object at the other time too, recoloured) and ``dshN`` [N, K-1, 3] the
+view-dependent SH, ``shN + (2t - 1) dshN`` (highlights on glossy surfaces move with the
+light). With ``reflection_height`` > 0, ``reflectivity`` [N] (logit of a strength) and
+``model.environment`` add a highlight looked up in the mirror direction
+(:mod:`gdiff.splat.reflection`). Any of them may be absent (the fit's ``time_opacity`` /
+``time_color`` / ``time_specular``; files from before ``dshN`` load with no view-dependent
+change). While fitting, ``time_gate`` [N] (see :meth:`raw_at_time`)
 switches these terms off for Gaussians not yet observed at both times; the saved model has
 the gate folded in (:meth:`apply_time_gate`). A later stage may add its own per-Gaussian
 entries (first dimension N), which densification carries along and

@@ -568,6 +568,31 @@ def test_unobserved_region_is_not_a_change(caplog):
     assert m1[10:25, 40:50].all() and not m1[10:25, 5:15].any() and not m0.any()
 
 
+def test_semi_transparent_object_is_judged_above_alpha_min():
+    """A fit to few photos draws an added object semi-transparent (rendered opacity 0.35 here).
+    With the segmenter's ``alpha_min`` below that, its pixels show a surface, are judged and
+    the object is a change; at 0.5 they show none and nothing is judged there."""
+    cam_a, cam_b = _plane_camera(0.0), _plane_camera(4.0)
+    ids = {k: np.ones((H, W), np.int64) for k in
+           [("p1", "t0", 0), ("p1", "t1", 0), ("p2", "t0", 0), ("p2", "t1", 0)]}
+    depth = {k: np.full((H, W), 5.0, np.float32) for k in ids}
+    alpha = {k: np.ones((H, W), np.float32) for k in ids}
+    for k, cols in ((("p1", "t1", 0), slice(40, 50)), (("p2", "t1", 0), slice(10, 20))):
+        ids[k][10:25, cols] = 3
+        depth[k][10:25, cols] = 4.0
+        alpha[k][10:25, cols] = 0.35
+    frames = {k: dict(depth=depth[k], alpha=alpha[k], camera=cam_a if k[0] == "p1" else cam_b)
+              for k in ids}
+    keys = {("p1", 0): 0, ("p2", 0): 1}
+    o = CompareOptions(min_area=4, observed_min_views=1, observed_min_parallax=0.0,
+                       geometry_min_poses=1)
+    _, opaque = compare_paths(ids, frames, o, keys=keys, alpha_min=0.5)
+    assert 3 not in set(opaque.loc[opaque["changed"], "id"])
+    masks, df = compare_paths(ids, frames, o, keys=keys, alpha_min=0.25)
+    assert set(df.loc[df["changed"], "id"]) == {3}
+    assert masks[("p1", 0)][1][10:25, 40:50].all()
+
+
 def test_thin_depth_noise_is_not_evidence():
     """A segment seen at one time only whose depth differs along thin streaks (a fitted
     model's depth noise along texture edges) is not confirmed; a solid change is."""

@@ -29,6 +29,7 @@ import cv2
 import numpy as np
 
 from ..cameras import Camera
+from ..segment.base import ALPHA_MIN
 from ..track import world_points
 
 
@@ -195,7 +196,7 @@ def _spread(order: np.ndarray, hits: np.ndarray, views: list[DepthView], centre:
 
 
 def surface(depth: np.ndarray, alpha: np.ndarray | None = None,
-            alpha_min: float = 0.5) -> np.ndarray:
+            alpha_min: float = ALPHA_MIN) -> np.ndarray:
     """bool [H, W]: pixels of a rendered frame that show a surface: finite positive z-depth
     [H, W] and, with ``alpha`` (rendered opacity [H, W]), opacity >= ``alpha_min``."""
     z = np.asarray(depth)
@@ -207,7 +208,7 @@ def surface(depth: np.ndarray, alpha: np.ndarray | None = None,
 
 def observed(depth: np.ndarray, camera: Camera, views: list[DepthView], depth_tol: float = 0.05,
              min_views: int = 1, alpha: np.ndarray | None = None,
-             alpha_min: float = 0.5, min_parallax: float = 0.0,
+             alpha_min: float = ALPHA_MIN, min_parallax: float = 0.0,
              max_views: int = 0, seen: bool = False, step: int = 1,
              points: np.ndarray | None = None):
     """bool [H, W]: pixels of a frame (z-depth [H, W], ``camera``) rendered at time t whose

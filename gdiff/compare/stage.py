@@ -28,6 +28,7 @@ from ..errors import SceneError
 from ..frames import TIMES, Key, key_frames, read_frame, read_sequence
 from ..io import read_ids, read_json, write_csv, write_mask
 from ..log import progress
+from ..segment.base import ALPHA_MIN
 from ..parallel import ordered_map
 from ..track import world_points
 from .change import (HIDDEN_SHARE, CompareOptions, appearance_change, change_masks, decide,
@@ -75,9 +76,10 @@ class _JudgePose:
     or None, geometry record or None, flat record or None)``."""
 
     def __init__(self, ids, get, o: CompareOptions, views, geo_stride: int | None,
-                 flat_stride: int | None):
+                 flat_stride: int | None, alpha_min: float = ALPHA_MIN):
         self.ids, self.get, self.o, self.views = ids, get, o, views
         self.geo_stride, self.flat_stride = geo_stride, flat_stride
+        self.alpha_min = alpha_min
 
     def __call__(self, pose):
         p, i = pose
@@ -97,6 +99,7 @@ class _JudgePose:
                 if f.get("depth") is not None and views[time]:
                     seen[time] = observed(f["depth"], cam, views[time], o.observed_depth_tol,
                                           o.observed_min_views, f.get("alpha"),
+                                          alpha_min=self.alpha_min,
                                           min_parallax=o.observed_min_parallax,
                                           max_views=o.observed_max_views, seen=True,
                                           step=o.observed_step(*f["depth"].shape),
@@ -105,7 +108,8 @@ class _JudgePose:
         shown = [s[1] if s is not None else None for s in seen]
         judged = None
         if all(m is not None for m in obs + shown):
-            both = surface(f0["depth"], f0.get("alpha")) & surface(f1["depth"], f1.get("alpha"))
+            both = (surface(f0["depth"], f0.get("alpha"), self.alpha_min)
+                    & surface(f1["depth"], f1.get("alpha"), self.alpha_min))
             judged = np.array([int(both.sum()), int((shown[0] & shown[1]).sum()),
                                int((obs[0] & obs[1]).sum())], np.int64)
         differ = None  # the pose's appearance change: the evidence needs it, the IDs may
@@ -133,7 +137,8 @@ class _JudgePose:
 def compare_paths(ids: dict[Key, np.ndarray], frames: dict[Key, dict] | None,
                   options: CompareOptions | None = None,
                   keys: dict[tuple[str, int], int] | None = None, workers: int = 1,
-                  photos: dict[tuple[str, int], np.ndarray] | None = None
+                  photos: dict[tuple[str, int], np.ndarray] | None = None,
+                  alpha_min: float = ALPHA_MIN
                   ) -> tuple[dict[tuple[str, int], tuple[np.ndarray, np.ndarray]], pd.DataFrame]:
     """Change masks per pose from the tracked ID maps.
 
@@ -146,7 +151,9 @@ def compare_paths(ids: dict[Key, np.ndarray], frames: dict[Key, dict] | None,
     (:func:`gdiff.parallel.ordered_map`; the result does not depend on it). ``photos``
     (optional): ``{(path, i): linear RGB float32 [H, W, 3]}``, the training photo of each key
     frame at the frame's size; with them the flat evidence keeps only what the photos of the
-    two times show differently (``flat_photo_contrast``, :mod:`gdiff.compare.photos`). Returns
+    two times show differently (``flat_photo_contrast``, :mod:`gdiff.compare.photos`).
+    ``alpha_min``: a pixel whose rendered opacity (the frames' ``alpha``) is below this shows no
+    surface and is not judged (the segmenter's ``alpha_min``: it gave such pixels no ID). Returns
     ({(path, i): (mask_t0, mask_t1)}, changes table: id,
     changed, type, partner, n_t0, n_t1, n_confirmed, first, last, area, instance, x, y, z,
     size; see :func:`gdiff.compare.change.decide`). The table's
@@ -164,7 +171,7 @@ def compare_paths(ids: dict[Key, np.ndarray], frames: dict[Key, dict] | None,
     flat = (GeometryEvidence(o.geometry_voxel_px, o.geometry_vote, o.geometry_min_poses,
                              o.geometry_min_object) if o.flat else None)
     judge = _JudgePose(ids, get, o, views, geo.stride if geo is not None else None,
-                       flat.stride if flat is not None else None)
+                       flat.stride if flat is not None else None, alpha_min)
     results = ordered_map(judge, poses, workers)
     for pose, (st, jd, g_rec, f_rec) in zip(poses, progress(results, desc="compare",
                                                            total=len(poses))):
@@ -484,7 +491,7 @@ def _rims(flat: GeometryEvidence, masks, n: int, band: int) -> np.ndarray:
 
 
 def compare(instances_dir, poses_json, out_dir, options: CompareOptions | None = None,
-            workers: int = 1, photo_root=None) -> dict:
+            workers: int = 1, photo_root=None, alpha_min: float = ALPHA_MIN) -> dict:
     """Stage ``compare``: change masks of every pose from the tracked IDs.
 
     Reads ``instances_dir/index.json`` (and through it the ID maps and the rendered EXR frames,
@@ -498,6 +505,8 @@ def compare(instances_dir, poses_json, out_dir, options: CompareOptions | None =
     processes the poses are judged on (the files do not depend on it). ``photo_root``: the
     folder the key frames' ``image`` names are relative to (:func:`gdiff.cameras.image_root`);
     with it the training photos check the flat evidence (``compare_paths``' ``photos``).
+    ``alpha_min``: the opacity below which a rendered pixel shows no surface
+    (``segment.alpha_min``; see ``compare_paths``).
     """
     instances_dir, out_dir = Path(instances_dir), Path(out_dir)
     index = read_json(instances_dir / "index.json")
@@ -538,7 +547,8 @@ def compare(instances_dir, poses_json, out_dir, options: CompareOptions | None =
             if image and depth is not None:
                 photos[(p, i)] = load_photo(Path(photo_root) / image, depth.shape[1],
                                             depth.shape[0])
-    masks, df = compare_paths(ids, load, options, keys=keys, workers=workers, photos=photos)
+    masks, df = compare_paths(ids, load, options, keys=keys, workers=workers, photos=photos,
+                              alpha_min=alpha_min)
     root = out_dir.parent
     rows = []
     for (p, i), (m0, m1) in sorted(masks.items()):

@@ -82,6 +82,13 @@ class Segmenter(Protocol):
         ...
 
 
+# Rendered opacity from which a pixel shows a surface (gets an instance, is compared). A fit to
+# few photos draws surfaces it has little evidence for semi-transparent - above all an object
+# that is there at one time only, whose Gaussians must vanish at the other - so a pixel that
+# is a quarter opaque already shows the model's surface; below that, too little was rendered.
+ALPHA_MIN = 0.25
+
+
 @dataclass
 class SegmentOptions:
     """Options of the ``segment`` config section (defaults are the config defaults).
@@ -90,7 +97,8 @@ class SegmentOptions:
     ------
     backend: ``geometric`` (weight-free, default) or ``sam`` (needs the two ONNX files).
     min_region_area: instances smaller than this many pixels are dropped (both backends).
-    alpha_min: pixels with rendered alpha below this are background (no instance).
+    alpha_min: pixels with rendered alpha below this are background (no instance); the compare
+        stage judges no pixel below it either (:data:`ALPHA_MIN`).
     overlays: also write a colour overlay of the IDs on each frame
         (``instances/overlay/<path>/<t>/NNNNN.jpg``, for inspection; nothing downstream reads
         them).
@@ -122,7 +130,7 @@ class SegmentOptions:
 
     backend: str = "geometric"
     min_region_area: int = 64
-    alpha_min: float = 0.5
+    alpha_min: float = ALPHA_MIN
     overlays: bool = False
     # geometric
     depth_edge_rel: float = 0.04

@@ -53,7 +53,7 @@ import cv2
 import numpy as np
 
 from ..errors import ConfigError, ModelFileError
-from .base import Instance, mask_bbox
+from .base import ALPHA_MIN, Instance, mask_bbox
 from .sam_masks import (box_nms, crop_boxes, mask_boxes, near_crop_edge, point_grid,
                         remove_small_regions, stability_score)
 
@@ -110,7 +110,7 @@ class SamOptions:
     crop_n_points_downscale_factor: int = 1
     min_mask_region_area: int = 0
     min_region_area: int = 64
-    alpha_min: float = 0.5
+    alpha_min: float = ALPHA_MIN
     threads: int = 0
     providers: list[str] | None = None
 

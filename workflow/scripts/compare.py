@@ -12,4 +12,5 @@ run_stage(snakemake, lambda: compare(
     Path(snakemake.output.keyframes).parent,
     from_config(CompareOptions, snakemake.params.options, "compare"),
     workers=snakemake.threads,
-    photo_root=image_root(snakemake.input.scene, snakemake.input.poses)))
+    photo_root=image_root(snakemake.input.scene, snakemake.input.poses),
+    alpha_min=snakemake.params.alpha_min))

@@ -14,6 +14,7 @@ from gdiff import synth
 from gdiff.compare import (CompareOptions, change_masks, compare, compare_paths, decide,
                            detect_changes_pair, pose_stats)
 from gdiff.compare import change as change_mod
+from gdiff.compare import stage as cmp_stage
 from gdiff.compare.change import replaced
 from gdiff.errors import SceneError
 from gdiff.parallel import fork_available
@@ -229,6 +230,20 @@ def test_stage_files(demo_paths, tmp_path, monkeypatch):
     segment_and_track(res / "render", res / "sequence" / "poses.json", inst2, SegmentOptions(),
                       TrackOptions())
     assert not (inst2 / "overlay").exists()
+    # compare judges the pixels the segmenter gave IDs: its alpha_min, from index.json
+    segment_and_track(res / "render", res / "sequence" / "poses.json", inst2,
+                      SegmentOptions(alpha_min=0.6), TrackOptions())
+    assert json.loads((inst2 / "index.json").read_text())["alpha_min"] == 0.6
+    used_alpha = []
+    real_paths = cmp_stage.compare_paths
+
+    def spy(*a, **k):
+        used_alpha.append(k["alpha_min"])
+        return real_paths(*a, **k)
+
+    monkeypatch.setattr(cmp_stage, "compare_paths", spy)
+    compare(inst2, res / "sequence" / "poses.json", res / "change2", CompareOptions())
+    assert used_alpha == [0.6]
     # more tracks than a 16-bit ID map holds: a clear error before anything is written
     real = seg_stage.track_paths
 

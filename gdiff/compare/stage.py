@@ -28,8 +28,8 @@ from ..errors import SceneError
 from ..frames import TIMES, Key, key_frames, read_frame, read_sequence
 from ..io import read_ids, read_json, write_csv, write_mask
 from ..log import progress
-from ..segment.base import ALPHA_MIN
 from ..parallel import ordered_map
+from ..segment.base import ALPHA_MIN
 from ..track import world_points
 from .change import (HIDDEN_SHARE, CompareOptions, appearance_change, change_masks, decide,
                      pose_stats, replaced)
@@ -491,7 +491,7 @@ def _rims(flat: GeometryEvidence, masks, n: int, band: int) -> np.ndarray:
 
 
 def compare(instances_dir, poses_json, out_dir, options: CompareOptions | None = None,
-            workers: int = 1, photo_root=None, alpha_min: float = ALPHA_MIN) -> dict:
+            workers: int = 1, photo_root=None) -> dict:
     """Stage ``compare``: change masks of every pose from the tracked IDs.
 
     Reads ``instances_dir/index.json`` (and through it the ID maps and the rendered EXR frames,
@@ -505,8 +505,9 @@ def compare(instances_dir, poses_json, out_dir, options: CompareOptions | None =
     processes the poses are judged on (the files do not depend on it). ``photo_root``: the
     folder the key frames' ``image`` names are relative to (:func:`gdiff.cameras.image_root`);
     with it the training photos check the flat evidence (``compare_paths``' ``photos``).
-    ``alpha_min``: the opacity below which a rendered pixel shows no surface
-    (``segment.alpha_min``; see ``compare_paths``).
+    Pixels whose rendered opacity is below the segmenter's ``alpha_min`` (recorded in
+    ``index.json``; :data:`gdiff.segment.base.ALPHA_MIN` when an older index lacks it) show no
+    surface and are not judged (``compare_paths``' ``alpha_min``).
     """
     instances_dir, out_dir = Path(instances_dir), Path(out_dir)
     index = read_json(instances_dir / "index.json")
@@ -548,7 +549,7 @@ def compare(instances_dir, poses_json, out_dir, options: CompareOptions | None =
                 photos[(p, i)] = load_photo(Path(photo_root) / image, depth.shape[1],
                                             depth.shape[0])
     masks, df = compare_paths(ids, load, options, keys=keys, workers=workers, photos=photos,
-                              alpha_min=alpha_min)
+                              alpha_min=index.get("alpha_min", ALPHA_MIN))
     root = out_dir.parent
     rows = []
     for (p, i), (m0, m1) in sorted(masks.items()):

@@ -185,7 +185,8 @@ def segment_and_track(render_dir, poses_json, out_dir, options: SegmentOptions |
 
     Reads ``render_dir/<path>/<t0|t1>/NNNNN.exr`` for every pose of ``poses_json``; writes
     ``out_dir/<path>/<t>/NNNNN.png`` (uint16 IDs), ``out_dir/tracks.csv`` and last
-    ``out_dir/index.json`` (render_dir, frames, files); with ``options.overlays`` also
+    ``out_dir/index.json`` (render_dir, alpha_min: the opacity below which a pixel got no ID,
+    frames, files); with ``options.overlays`` also
     ``out_dir/overlay/<path>/<t>/NNNNN.jpg`` (stale overlays are removed otherwise).
     ``workers``: processes the frames are segmented on (:func:`track_paths`; the files do not
     depend on it). Returns a summary dict (frames, tracks).
@@ -209,7 +210,8 @@ def segment_and_track(render_dir, poses_json, out_dir, options: SegmentOptions |
             f"{MAX_ID} IDs a 16-bit ID map holds. Render fewer frames (larger "
             "interpolate.max_angle_deg and interpolate.max_step) or raise "
             "segment.min_region_area so fewer small segments are kept.")
-    index = {"render_dir": os.path.relpath(render_dir, out_dir), "frames": []}
+    index = {"render_dir": os.path.relpath(render_dir, out_dir),
+             "alpha_min": options.alpha_min, "frames": []}
     if not options.overlays and (out_dir / "overlay").is_dir():
         shutil.rmtree(out_dir / "overlay")  # from an earlier run with overlays on
     for (p, t, i), m in progress(sorted(ids.items()), desc="write IDs"):

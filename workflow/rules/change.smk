@@ -36,8 +36,6 @@ rule compare:
         evidence=res("{scene}", "change", "evidence3d.npz"),
     params:
         options=options("compare"),
-        # the opacity below which a rendered pixel shows no surface: the segmenter's
-        alpha_min=lambda wildcards: options("segment")(wildcards)["alpha_min"],
     threads: 2
     conda:
         "../envs/gdiff.yaml"

@@ -12,5 +12,4 @@ run_stage(snakemake, lambda: compare(
     Path(snakemake.output.keyframes).parent,
     from_config(CompareOptions, snakemake.params.options, "compare"),
     workers=snakemake.threads,
-    photo_root=image_root(snakemake.input.scene, snakemake.input.poses),
-    alpha_min=snakemake.params.alpha_min))
+    photo_root=image_root(snakemake.input.scene, snakemake.input.poses)))

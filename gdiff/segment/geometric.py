@@ -11,7 +11,13 @@ The image is cut along three kinds of boundaries, then the pieces are the instan
   object from the support it stands on, where depth is continuous.
 * colour edges: gradients of linear-RGB chromaticity (r, g over r+g+b). Chromaticity does not
   change when a surface gets brighter or darker (shading, shadows of a white light, exposure),
-  so these edges stay put under lighting changes; raw intensity edges are not used.
+  so these edges stay put under lighting changes; raw intensity edges are not used. They are
+  left out where the depth shows the surface bending (shading under a coloured light changes
+  chromaticity too). On a fitted model's depth the normals vary from pixel to pixel and such
+  "bends" cover most of every frame, so there colour edges rarely count and the regions follow
+  depth and concave creases. Letting colour count everywhere on such frames separates objects
+  the depth misses on a capture under unchanged light, but under a change of coloured light it
+  cuts lit and shaded surfaces into pieces that differ between the times (tried, not kept).
 
 Pixels on edges are then given to the adjacent region of most similar depth (or colour when
 there is no depth), so masks cover the objects up to their silhouettes. All work happens at a

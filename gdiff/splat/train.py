@@ -43,8 +43,13 @@ can weaken the change of a small, far object, and a much higher one does so more
 
 Each iteration renders one training image at the working resolution (``max_side``); every
 image is used once per epoch, before and after images alternating (random order within a
-time), so both states get the same share of the updates at every stage. Loss = L1 + ``ssim_lambda`` (1 - SSIM) + grid regularisers
-(fine phase). 3DGS adaptive density control runs every ``densify_every`` iterations between
+time), so both states get the same share of the updates at every stage. Loss = L1 +
+``ssim_lambda`` (1 - SSIM) + grid regularisers (fine phase). Over the default black
+``background`` the fit may draw a dark surface (a shaded box front, the gap under a sofa)
+half-transparent, the black showing through; the segmenter gives such pixels no ID below
+``segment.alpha_min``. ``random`` (a new colour every step, as in nerfstudio's splatfacto)
+renders nearly opaque, but was not better for the change maps of a sparse capture (tried, not
+the default). 3DGS adaptive density control runs every ``densify_every`` iterations between
 ``densify_from`` and ``densify_until`` (global iteration numbers), with thresholds scaled to
 the scene extent (camera spread); a Gaussian's mean view-space gradient is taken over the views
 of the times at which it exists (opacity above ``prune_opacity``), so Gaussians of an object

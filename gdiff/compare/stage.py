@@ -76,7 +76,7 @@ class _JudgePose:
     or None, geometry record or None, flat record or None)``."""
 
     def __init__(self, ids, get, o: CompareOptions, views, geo_stride: int | None,
-                 flat_stride: int | None, alpha_min: float = ALPHA_MIN):
+                 flat_stride: int | None, alpha_min: float):
         self.ids, self.get, self.o, self.views = ids, get, o, views
         self.geo_stride, self.flat_stride = geo_stride, flat_stride
         self.alpha_min = alpha_min

@@ -16,8 +16,9 @@ The image is cut along three kinds of boundaries, then the pieces are the instan
   chromaticity too). On a fitted model's depth the normals vary from pixel to pixel and such
   "bends" cover most of every frame, so there colour edges rarely count and the regions follow
   depth and concave creases. Letting colour count everywhere on such frames separates objects
-  the depth misses on a capture under unchanged light, but under a change of coloured light it
-  cuts lit and shaded surfaces into pieces that differ between the times (tried, not kept).
+  the depth misses on a real capture, but it cuts textured surfaces, and under a change of
+  coloured light lit and shaded ones, into pieces that differ between the times (tried, not
+  kept).
 
 Pixels on edges are then given to the adjacent region of most similar depth (or colour when
 there is no depth), so masks cover the objects up to their silhouettes. All work happens at a

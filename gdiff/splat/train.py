@@ -48,10 +48,11 @@ time), so both states get the same share of the updates at every stage. Loss = L
 ``background`` the fit may draw a dark surface (a shaded box front, the gap under a sofa)
 half-transparent, the black showing through; the segmenter gives such pixels no ID below
 ``segment.alpha_min``. ``random`` (a new colour every step, as in nerfstudio's splatfacto)
-renders nearly opaque, but was not better for the change maps of a sparse capture (tried, not
-the default). 3DGS adaptive density control runs every ``densify_every`` iterations between
-``densify_from`` and ``densify_until`` (global iteration numbers), with thresholds scaled to
-the scene extent (camera spread); a Gaussian's mean view-space gradient is taken over the views
+renders nearly opaque, but its change maps were worse on a sparse real capture and on the
+bench scenes with moved hard shadows (tried, not the default). 3DGS adaptive density control
+runs every ``densify_every`` iterations between ``densify_from`` and ``densify_until``
+(global iteration numbers), with thresholds scaled to the scene extent (camera spread); a
+Gaussian's mean view-space gradient is taken over the views
 of the times at which it exists (opacity above ``prune_opacity``), so Gaussians of an object
 seen at one time only grow as readily as the others; pruning keeps a Gaussian that is opaque at
 any time. Growth stops at ``max_gaussians`` (the cost of a step is about linear in the number

@@ -165,8 +165,8 @@ def test_time_opacity_term_and_files_without_it(tmp_path):
     assert torch.allclose(o1[:10], torch.sigmoid(torch.tensor(3.0)).expand(10))
     assert torch.allclose(oh, torch.full((30,), 0.5)) and torch.allclose(o0[10:], o1[10:])
     # the price on change: mean |dopacity| over all, or over the gated Gaussians
-    assert float(m.opacity_change()) == 1.0
-    assert float(m.opacity_change((torch.arange(30) < 20).float())) == 1.5
+    assert m.opacity_change().item() == 1.0
+    assert m.opacity_change((torch.arange(30) < 20).float()).item() == 1.5
     save_model(m, tmp_path / "m.pt")
     assert torch.equal(load_model(tmp_path / "m.pt").splats["dopacity"], m.splats["dopacity"])
     old = {k: v for k, v in m.state_dict().items() if k != "splats.dopacity"}

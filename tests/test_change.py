@@ -875,6 +875,67 @@ def test_object_one_photo_shows_is_judged_by_appearance_not_by_its_depth():
     assert not st[2]["observed"] and not st[2]["candidate"]
 
 
+def test_few_trusted_pixels_do_not_make_an_object_the_same_surface_on_a_sparse_capture():
+    """A sparse capture (depth trusted on a few pixels only): at t1 a red box stands at the
+    image's left edge on a green and white cover, which the segmenter cuts differently at the
+    two times around it, and the box's ID takes a strip of the cover too. Its depth is trusted
+    on a few pixels of that strip, where it did not change. Those pixels do not make the box
+    the same surface as the cover: it is judged by its appearance and its colours changed, so
+    it is confirmed (and added). Pieces of the cover cut differently (same colours) are not.
+    Where the trusted pixels are half of the region, its unchanged depth still decides (same
+    surface, not confirmed). A region only seen is confirmed by its colours even where its
+    texture persists (the fit draws a box it saw once faintly over what stood there), unless
+    the depth is trusted there."""
+    rng = np.random.default_rng(13)
+    o = CompareOptions(min_area=4)
+    cover = np.where(_smooth_texture(rng, (H, W), 1.0)[..., :1] > 0.5, (0.2, 0.6, 0.25),
+                     (0.85, 0.85, 0.8)).astype(np.float32)
+    rgb0, rgb1 = cover.copy(), cover.copy()
+    rgb1[10:24, 0:12] = np.clip(np.array((0.55, 0.08, 0.1))
+                                * (0.8 + 0.4 * _smooth_texture(rng, (14, 12), 1.0)), 0, 1)
+    ids0 = np.ones((H, W), np.int64)
+    ids1 = ids0.copy()
+    ids0[0:30, 0:30], ids1[0:30, 0:30] = 5, 4  # the cover around the box, cut differently
+    ids1[10:24, 0:16] = 2                      # the box and a strip of the cover next to it
+    ids0[30:38, 36:50], ids1[30:38, 36:50] = 6, 3  # another piece of the cover
+    z0 = np.full((H, W), 2.0, np.float32)
+    z1 = z0.copy()
+    shown = np.ones((H, W), bool)
+    few = np.zeros((H, W), bool)
+    few[10:24, 13:16] = few[30:38, 47:50] = True  # trusted: 3 of 16 columns, the cover
+    assert 0 < few[ids1 == 2].mean() < 0.5 and few.mean() < 0.5
+
+    def stats(rgb1, observed):
+        return pose_stats(ids0, ids1, o, rgb0, rgb1, z0, z1, observed0=observed,
+                          observed1=observed, seen0=shown, seen1=shown)
+
+    st = stats(rgb1, few)
+    assert st[2]["candidate"] and st[2]["evidence"] < o.min_evidence  # no depth change
+    assert st[2]["confirmed"], st[2]
+    for i in (3, 4, 5, 6):
+        assert st[i]["candidate"] and not st[i]["confirmed"], (i, st[i])
+    df = decide([("pose", st)], o).set_index("id")
+    assert df.at[2, "changed"] and df.at[2, "type"] == "added"
+    assert not df.loc[[3, 4, 5, 6], "changed"].any()
+    # trusted on half of the region (still a sparse pose): its unchanged depth decides
+    half = few.copy()
+    half[10:24, 4:16] = True
+    assert half[ids1 == 2].mean() >= 0.5 and half.mean() < 0.5
+    assert st[2]["candidate"] and not stats(rgb1, half)[2]["confirmed"]
+    # the box drawn as the cover's own texture, reddened: the texture persists, the colours
+    # do not. Only seen: confirmed by its colours; its depth trusted everywhere: same surface
+    faint = rgb0.copy()
+    faint[10:24, 0:12] = cover[10:24, 0:12] * np.array((1.0, 0.25, 0.3), np.float32)
+    st = stats(faint, few)
+    assert st[2]["similarity"] >= o.same_similarity and st[2]["confirmed"], st[2]
+    assert not stats(faint, shown)[2]["confirmed"]
+    # with the training photos asked: only their "the two times differ" confirms by colour
+    for answer in (True, False, None):
+        st = pose_stats(ids0, ids1, o, rgb0, faint, z0, z1, observed0=few, observed1=few,
+                        seen0=shown, seen1=shown, photos_differ=lambda region: answer)
+        assert st[2]["confirmed"] is (answer is True), (answer, st[2])
+
+
 def test_floor_resegmented_by_moved_glare_is_not_a_change():
     """A lighting change puts glare on a checker floor at t1: the washed-out part becomes a
     segment of its own and the floor's segments at t0 no longer match any at t1, so every
@@ -1157,6 +1218,48 @@ def test_flat_change_the_photos_show_alike_is_the_fits_own():
                        dataclasses.replace(o, flat_photo_contrast=0.0)) == found  # not asked
     one_time = {k: bare[k[1]] for k, t in keys.items() if t == 0}
     assert flat_pixels(one_time) == found  # the photos cannot tell
+
+
+def test_only_seen_region_is_confirmed_by_its_colours_where_the_photos_differ_too():
+    """A sparse capture of a wall: no surface's depth is trusted (each point is seen from too
+    few directions), so every region is only seen. At t1 the fit renders a patch of the wall
+    reddened, its texture still there (an object drawn faintly over the wall, or glass and
+    metal rendered in other colours), and the segmenter cuts the wall differently around it
+    at the two times. Its colours changed, so it is a change where the training photos of the
+    two times differ there too (a red poster put up), and not where they look alike (the
+    fit's own colours); without the photos its colours alone decide."""
+    cams = [_wall_camera(x) for x in np.linspace(-1.0, 1.0, 9)]
+    keys = {("p1", i): i % 2 for i in range(len(cams))}  # even poses: t0 photos, odd: t1
+    ids, frames, truth, bare, poster = {}, {}, {}, {}, {}
+    for i, cam in enumerate(cams):
+        z, x, y, truth[i] = _wall_poster(cam)
+        dots = (np.sin(25 * x) * np.sin(25 * y) > 0)[..., None]  # a patterned wallpaper
+        rgb0 = (_wall_rgb(cam, z) * np.where(dots, 1.3, 0.7)).astype(np.float32)
+        rgb1 = rgb0.copy()
+        rgb1[truth[i]] *= np.array((1.0, 0.25, 0.3), np.float32)  # faint, texture kept
+        bare[i], poster[i] = srgb_to_linear(rgb0), srgb_to_linear(rgb1)
+        around = (np.abs(x + 0.2) <= 1.5) & (np.abs(y) <= 1.1)
+        ids0, ids1 = np.ones(z.shape, np.int32), np.ones(z.shape, np.int32)
+        ids0[around], ids1[around] = 3, 4  # the wall around it, cut differently
+        ids1[truth[i]] = 2
+        ids[("p1", "t0", i)], ids[("p1", "t1", i)] = ids0, ids1
+        frames[("p1", "t0", i)] = dict(depth=z.copy(), camera=cam, rgb=rgb0)
+        frames[("p1", "t1", i)] = dict(depth=z.copy(), camera=cam, rgb=rgb1)
+    o = CompareOptions(observed_min_views=20, geometry=False, flat=False)
+
+    def changed(photos):
+        masks, df = compare_paths(ids, frames, o, keys=keys, photos=photos)
+        marked = sum(int((m1 & truth[i]).sum()) for (_, i), (_, m1) in masks.items())
+        return marked / sum(int(t.sum()) for t in truth.values()), df.set_index("id")
+
+    real = {k: (bare if t == 0 else poster)[k[1]] for k, t in keys.items()}
+    share, df = changed(real)
+    assert share > 0.9 and df.at[2, "changed"] and df.at[2, "type"] == "added"
+    assert not df.loc[[1, 3, 4], "changed"].any()
+    share, df = changed({k: bare[k[1]] for k in keys})  # photographed alike: the fit's own
+    assert share == 0 and not df.at[2, "changed"]
+    share, df = changed(None)
+    assert share > 0.9 and df.at[2, "changed"]
 
 
 def test_photos_differ_against_their_spread_within_a_time():

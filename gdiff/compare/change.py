@@ -141,6 +141,8 @@ class CompareOptions:
         photos of the two times differ there by at least this many times their spread within
         a time, in brightness or chromaticity (:mod:`gdiff.compare.photos`): the fit renders
         some unchanged surfaces differently at the two times, the photos show them alike.
+        The same test decides for a region of the ID comparison that only its colours would
+        confirm (depth not trusted, a sparse capture: see :func:`pose_stats`).
         0: not checked (also when the stage has no photos).
     confirm_support: a changed object of the ID comparison is kept only when at least this
         share of its pixels lie within two voxels of the 3D evidence (the geometry evidence:
@@ -377,7 +379,8 @@ def pose_stats(ids0: np.ndarray, ids1: np.ndarray, o: CompareOptions,
                observed1: np.ndarray | None = None, seen0: np.ndarray | None = None,
                seen1: np.ndarray | None = None,
                appearance: np.ndarray | None = None,
-               points: tuple[np.ndarray, np.ndarray] | None = None) -> dict[int, dict]:
+               points: tuple[np.ndarray, np.ndarray] | None = None,
+               photos_differ=None) -> dict[int, dict]:
     """Compare the ID maps int [H, W] of one pose at t0 and t1.
 
     Returns, per ID visible at this pose: ``area0``, ``area1`` (pixels), ``candidate`` (absent
@@ -414,7 +417,19 @@ def pose_stats(ids0: np.ndarray, ids1: np.ndarray, o: CompareOptions,
     only on the observed pixels: there alone it decides whether a region is hidden at the
     other time, changed depth, or is the same surface. A region only seen (a sparse capture:
     an object one photo shows, whose depth the fit could put anywhere along that photo's rays)
-    is judged by its appearance. ``appearance`` (bool [H, W], optional): the pose's
+    is judged by its appearance. At a pose of a sparse capture (depth trusted on less than
+    half of what the photos show) a region counts as only seen unless its depth is trusted
+    on at least half of its pixels: a few trusted pixels on its rim, often the surface next
+    to it, do not make it "the same surface". There its colours confirm it (the
+    chromaticity histogram test below, ``texture_color_similarity``, without the texture
+    test: a box the fit draws faintly from one or two photos keeps part of the texture
+    behind it) where the training photos of the two times differ there too:
+    ``photos_differ`` (optional) is called with the region (bool [H, W]) and returns True,
+    False or None (cannot tell; see :func:`gdiff.compare.photos.region_photos_differ`); only
+    True confirms. The renders of glass, metal and translucent plastic differ between the
+    times in colour as well, the photos of them do not. Without ``photos_differ`` the colours
+    alone decide.
+    ``appearance`` (bool [H, W], optional): the pose's
     :func:`appearance_change` of ``rgb0`` and ``rgb1`` when the caller has it already;
     ``points`` (optional): the world points [H, W, 3] of ``depth0`` and ``depth1``
     (:func:`gdiff.track.world_points` with ``camera``), likewise.
@@ -537,7 +552,7 @@ def pose_stats(ids0: np.ndarray, ids1: np.ndarray, o: CompareOptions,
             if visible is not None:
                 region0, region1 = region0 & visible, region1 & visible
         evidence, sim, confirmed = float("nan"), float("nan"), bool(cand)
-        disoccluded = False
+        disoccluded = only_seen = False
         hidden_by, hidden = 0, 0.0
         if cand and (has_depth or has_rgb):
             region = region0 | region1
@@ -583,16 +598,23 @@ def pose_stats(ids0: np.ndarray, ids1: np.ndarray, o: CompareOptions,
                 on_cont = ((region0 & region & cont1) | (region1 & region & cont0)).sum()
                 # likewise a region whose surface did not move, unless another instance took
                 # its place (an object swapped for one of the same shape): a lighting change
-                # re-segments a floor under moved shadows or glare, but leaves its depth
+                # re-segments a floor under moved shadows or glare, but leaves its depth. On
+                # a sparse capture the depth says so only where trusted on half the region;
+                # otherwise the region is only seen and its colours judge it
+                depth_judges = bool(depth_region.any()) and (
+                    not sparse or depth_region.sum() >= 0.5 * region.sum())
+                only_seen = sparse and not depth_judges
                 same_surface = on_cont >= 0.5 * region.sum() or (
-                    depth_region.any() and (~raw_depth_change()[depth_region]).mean() >= 0.5
+                    depth_judges and (~raw_depth_change()[depth_region]).mean() >= 0.5
                     and not _swapped(ids0, ids1, t, region0 & region, region1 & region, o))
                 texture_ok = not (disoccluded or (same_surface and not (has_rgb and _support_shows(
                     region0 & region, region1 & region, cont0, cont1, chroma, o, visible))))
             if cand and has_rgb and texture_ok:
                 sim = region_similarity(*grads(), region, o.min_texture)
             if cand:
-                differs = sim < o.same_similarity
+                differs = sim < o.same_similarity or (
+                    only_seen and texture_ok and has_rgb
+                    and (photos_differ is None or photos_differ(region) is True))
                 if differs and o.texture_color_similarity < 1:
                     colour = _bhattacharyya(_chroma_hist(chroma(0), region),
                                             _chroma_hist(chroma(1), region))

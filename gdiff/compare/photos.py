@@ -124,3 +124,24 @@ def alike_components(keys: list[np.ndarray], components: list[np.ndarray], voxel
             if not verdict:
                 alike.append(int(c))
     return np.asarray(sorted(alike), np.int64), judged
+
+
+def region_photos_differ(region: np.ndarray, points: tuple[np.ndarray, np.ndarray],
+                         depths: tuple[np.ndarray, np.ndarray], photos: list[KeyPhoto],
+                         depth_tol: float, contrast: float) -> bool | None:
+    """Whether the training photos of the two times show a region of a pose differently
+    (:func:`photos_differ`): at each time the region's surface there, ``points[t]`` [H, W, 3]
+    (world frame) at the pixels ``region`` (bool [H, W]), is looked up in that time's photos
+    (:func:`view_means`, within ``depth_tol`` times the region's median rendered depth
+    ``depths[t]`` [H, W], z, of the depth each photo renders). None when a time has no
+    surface there or too few photos of it."""
+    means = []
+    for t in (0, 1):
+        z = np.asarray(depths[t])[region]
+        z = z[np.isfinite(z) & (z > 0)]
+        if not z.size:
+            return None
+        means.append(view_means(np.asarray(points[t])[region],
+                                [k for k in photos if k.time == t],
+                                depth_tol * float(np.median(z)))[t])
+    return photos_differ(means[0], means[1], contrast)

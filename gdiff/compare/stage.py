@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import logging
 import os
+from functools import partial
 from pathlib import Path
 
 import cv2
@@ -36,7 +37,7 @@ from .change import (HIDDEN_SHARE, CompareOptions, appearance_change, change_mas
 from .coverage import DepthView, observed, surface
 from .geometry import (GeometryEvidence, flat_flags, pixel_scale, pose_flags, pose_record,
                        write_evidence)
-from .photos import KeyPhoto, alike_components, load_photo
+from .photos import KeyPhoto, alike_components, load_photo, region_photos_differ
 from .spread import count_voxels, object_voxels, spread_masks, voxel_keys
 
 log = logging.getLogger("gdiff.compare")
@@ -73,11 +74,14 @@ def _key_photos(get, keys: dict[tuple[str, int], int], photos: dict) -> list[Key
 class _JudgePose:
     """The per-pose part of :func:`compare_paths` (depends on that pose alone, so poses can be
     judged in parallel): called with ``(path, i)``, returns ``(stats entry, judged pixel counts
-    or None, geometry record or None, flat record or None)``."""
+    or None, geometry record or None, flat record or None)``. ``key_photos`` (list of
+    :class:`KeyPhoto`, optional): the training photos, asked whether the two times differ on
+    a region only seen (:func:`gdiff.compare.change.pose_stats`)."""
 
     def __init__(self, ids, get, o: CompareOptions, views, geo_stride: int | None,
-                 flat_stride: int | None, alpha_min: float):
+                 flat_stride: int | None, alpha_min: float, key_photos=None):
         self.ids, self.get, self.o, self.views = ids, get, o, views
+        self.key_photos = key_photos
         self.geo_stride, self.flat_stride = geo_stride, flat_stride
         self.alpha_min = alpha_min
 
@@ -115,11 +119,17 @@ class _JudgePose:
         differ = None  # the pose's appearance change: the evidence needs it, the IDs may
         if evidence and f0.get("rgb") is not None and f1.get("rgb") is not None:
             differ = appearance_change(f0["rgb"], f1["rgb"], o.chroma_tol, o.ncc_min)
+        photo_check = None  # do the photos of the two times differ on a region?
+        if self.key_photos and have_depth and need:
+            photo_check = partial(region_photos_differ, points=tuple(pts), depths=(z0, z1),
+                                  photos=self.key_photos, depth_tol=o.observed_depth_tol,
+                                  contrast=o.flat_photo_contrast)
         stats = (f"{p}/{i:05d}", pose_stats(
             self.ids[(p, "t0", i)], self.ids[(p, "t1", i)], o, f0.get("rgb"), f1.get("rgb"),
             z0, z1, focal=cam.fx if cam is not None else None,
             camera=cam, observed0=obs[0], observed1=obs[1], seen0=shown[0], seen1=shown[1],
-            appearance=differ, points=tuple(pts) if have_depth and need else None))
+            appearance=differ, points=tuple(pts) if have_depth and need else None,
+            photos_differ=photo_check))
         g_rec = f_rec = None
         if evidence:
             known = obs[0] & obs[1] if obs[0] is not None and obs[1] is not None else None
@@ -151,7 +161,9 @@ def compare_paths(ids: dict[Key, np.ndarray], frames: dict[Key, dict] | None,
     (:func:`gdiff.parallel.ordered_map`; the result does not depend on it). ``photos``
     (optional): ``{(path, i): linear RGB float32 [H, W, 3]}``, the training photo of each key
     frame at the frame's size; with them the flat evidence keeps only what the photos of the
-    two times show differently (``flat_photo_contrast``, :mod:`gdiff.compare.photos`).
+    two times show differently (``flat_photo_contrast``, :mod:`gdiff.compare.photos`), and so
+    does the ID comparison for a region whose depth is not trusted at a pose of a sparse
+    capture and that only its colours would confirm.
     ``alpha_min``: a pixel whose rendered opacity (the frames' ``alpha``) is below this shows no
     surface and is not judged (the segmenter's ``alpha_min``: it gave such pixels no ID). Returns
     ({(path, i): (mask_t0, mask_t1)}, changes table: id,
@@ -171,7 +183,8 @@ def compare_paths(ids: dict[Key, np.ndarray], frames: dict[Key, dict] | None,
     flat = (GeometryEvidence(o.geometry_voxel_px, o.geometry_vote, o.geometry_min_poses,
                              o.geometry_min_object) if o.flat else None)
     judge = _JudgePose(ids, get, o, views, geo.stride if geo is not None else None,
-                       flat.stride if flat is not None else None, alpha_min)
+                       flat.stride if flat is not None else None, alpha_min,
+                       key_photos=_key_photos(get, keys, photos) if photos and keys else None)
     results = ordered_map(judge, poses, workers)
     for pose, (st, jd, g_rec, f_rec) in zip(poses, progress(results, desc="compare",
                                                            total=len(poses))):

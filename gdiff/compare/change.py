@@ -612,13 +612,16 @@ def pose_stats(ids0: np.ndarray, ids1: np.ndarray, o: CompareOptions,
             if cand and has_rgb and texture_ok:
                 sim = region_similarity(*grads(), region, o.min_texture)
             if cand:
-                differs = sim < o.same_similarity or (
-                    only_seen and texture_ok and has_rgb
-                    and (photos_differ is None or photos_differ(region) is True))
+                differs = sim < o.same_similarity
+                by_colour = not differs and only_seen and texture_ok and has_rgb
+                differs = differs or by_colour
                 if differs and o.texture_color_similarity < 1:
                     colour = _bhattacharyya(_chroma_hist(chroma(0), region),
                                             _chroma_hist(chroma(1), region))
                     differs = colour < o.texture_color_similarity
+                if differs and by_colour and photos_differ is not None:
+                    # asked last: it projects the region into the photos
+                    differs = photos_differ(region) is True
                 confirmed = bool((has_depth and evidence >= o.min_evidence) or differs)
             if cand and np.isnan(evidence) and np.isnan(sim) and has_rgb and region.any():
                 evidence = float(ev_chroma()[region].mean())

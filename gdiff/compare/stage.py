@@ -182,9 +182,10 @@ def compare_paths(ids: dict[Key, np.ndarray], frames: dict[Key, dict] | None,
                             o.geometry_min_object) if o.geometry else None)
     flat = (GeometryEvidence(o.geometry_voxel_px, o.geometry_vote, o.geometry_min_poses,
                              o.geometry_min_object) if o.flat else None)
+    key_photos = _key_photos(get, keys, photos) if photos and keys else None
     judge = _JudgePose(ids, get, o, views, geo.stride if geo is not None else None,
                        flat.stride if flat is not None else None, alpha_min,
-                       key_photos=_key_photos(get, keys, photos) if photos and keys else None)
+                       key_photos=key_photos if o.flat_photo_contrast > 0 else None)
     results = ordered_map(judge, poses, workers)
     for pose, (st, jd, g_rec, f_rec) in zip(poses, progress(results, desc="compare",
                                                            total=len(poses))):
@@ -212,7 +213,7 @@ def compare_paths(ids: dict[Key, np.ndarray], frames: dict[Key, dict] | None,
             and o.flat_photo_contrast > 0:
         alike, n_judged = alike_components(
             flat.changed, flat.component, flat.voxel, flat.centres,
-            _key_photos(get, keys, photos),
+            key_photos,
             o.flat_photo_contrast)
         flat.drop(alike)
         log.info("flat changes: the photos of the two times judged %d of %d components and show "

@@ -38,7 +38,10 @@ Outputs in ``out_dir`` (``results/<scene>/eval/``), all written atomically:
   ``box_min_area``; see :mod:`gdiff.metrics` for definitions and the NaN convention), then
   ``gtbox_N, gtbox_found, gtbox_R, far_FP, far_N, far_frac`` (box ground truth; empty for views
   without boxes; pixel and object columns empty for box views);
-* ``boxes.csv`` — every predicted and ground-truth box (for AP pooled over views);
+* ``boxes.csv`` — every predicted and ground-truth box (for AP pooled over views; ``kind``
+  ``pred`` or ``gt``) and, per method, every box of ``eval/boxes.json`` (``kind`` ``gt_box``:
+  ``core`` the fraction of its core predicted changed, ``matched`` whether it is found), so a
+  missed box shows by how much it was missed;
 * ``fit_quality.csv`` — PSNR of the fitted model at each eval view, t=0 vs ``eval/before`` and
   t=1 vs ``eval/after`` (:func:`render_quality`; written by :func:`evaluate_workflow_scene`);
 * ``scene_summary.csv`` — per method: mean over views and pooled figures (``obj_R_pooled``:
@@ -70,7 +73,8 @@ from .io import (imread_upright, read_image, read_image_sized, read_json, read_m
                  write_image, write_mask)
 from .scene import list_images
 from .log import progress
-from .metrics import aggregate, gt_box_scores, object_regions, object_scores, score_view
+from .metrics import (aggregate, gt_box_cores, gt_box_scores, object_regions, object_scores,
+                      score_view)
 
 log = logging.getLogger("gdiff.evaluate")
 
@@ -545,6 +549,8 @@ def evaluate_scene(scene_dir: str | Path, cameras_json: str | Path | None, out_d
             if gt_boxes is not None:
                 scores.update(gt_box_scores(pred.mask, gt_boxes, options.box_core,
                                             options.object_found_fraction, margin))
+                box_frames.append(_gt_box_rows(pred.mask, gt_boxes, options).assign(
+                    scene=scene_name, view=view.name, method=name))
             rows.append({"scene": scene_name, "view": view.name, "method": name, **scores,
                          "seconds": seconds})
             write_mask(out_dir / "maps" / name / f"{view.name}.png", pred.mask)
@@ -557,8 +563,8 @@ def evaluate_scene(scene_dir: str | Path, cameras_json: str | Path | None, out_d
                                       [r for r in rows if r["view"] == view.name]))
     df = pd.DataFrame(rows, columns=METRIC_COLUMNS)
     box_cols = ["scene", "view", "method", "kind", "x0", "y0", "x1", "y1", "score", "matched",
-                "iou"]
-    frames = [f for f in box_frames if len(f)]
+                "iou", "core"]
+    frames = [f.reindex(columns=box_cols) for f in box_frames if len(f)]
     boxes = (pd.concat(frames, ignore_index=True)[box_cols] if frames
              else pd.DataFrame(columns=box_cols))
     write_csv(out_dir / "metrics.csv", df)
@@ -573,6 +579,18 @@ def evaluate_scene(scene_dir: str | Path, cameras_json: str | Path | None, out_d
                      scene_name, m, int(g["gtbox_found"].sum()), int(g["gtbox_N"].sum()),
                      g["far_FP"].sum() / max(g["far_N"].sum(), 1))
     return df
+
+
+def _gt_box_rows(pred: np.ndarray, boxes: np.ndarray, options: EvalOptions) -> pd.DataFrame:
+    """The rows of ``boxes.csv`` for the boxes of ``eval/boxes.json`` at one view and method:
+    ``kind`` ``gt_box``, the box (xyxy pixels of the scored map), ``core`` the fraction of its
+    core marked changed by ``pred`` [H, W] and ``matched`` whether that makes it found
+    (:func:`gdiff.metrics.gt_box_cores`); ``score`` and ``iou`` are empty."""
+    b = np.asarray(boxes, np.float64).reshape(-1, 4)
+    core, found = gt_box_cores(pred, b, options.box_core, options.object_found_fraction)
+    return pd.DataFrame({"kind": "gt_box", "x0": b[:, 0], "y0": b[:, 1], "x1": b[:, 2],
+                         "y1": b[:, 3], "score": np.nan, "matched": found, "iou": np.nan,
+                         "core": core})
 
 
 def _box_mask(boxes: np.ndarray, shape: tuple[int, int]) -> np.ndarray:

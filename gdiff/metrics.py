@@ -279,20 +279,36 @@ def _box_slices(box, shape: tuple[int, int], scale: float = 1.0, grow: float = 0
     return rng(cy - hh, cy + hh, h), rng(cx - hw, cx + hw, w)
 
 
+def gt_box_cores(pred: np.ndarray, boxes, core: float = 0.5, found_fraction: float = 0.5
+                 ) -> tuple[np.ndarray, np.ndarray]:
+    """Per ground-truth box [K, 4] (xyxy pixels of ``pred`` [H, W]): the fraction of its core
+    (the centred ``core`` of its width and height; a core thinner than a pixel is widened to
+    one) that ``pred`` marks changed, float [K] (NaN for a core outside the image), and
+    whether the box is found (at least ``found_fraction`` of its core marked), bool [K]."""
+    pred = np.asarray(pred) > 0
+    boxes = np.asarray(boxes, dtype=np.float64).reshape(-1, 4)
+    frac = np.full(len(boxes), np.nan)
+    found = np.zeros(len(boxes), bool)
+    for k, b in enumerate(boxes):
+        rs, cs = _box_slices(b, pred.shape, scale=core)
+        if rs.stop == rs.start or cs.stop == cs.start:  # a core thinner than a pixel
+            rs, cs = _box_slices(b, pred.shape, scale=core, grow=0.5)
+        n = (rs.stop - rs.start) * (cs.stop - cs.start)
+        if n > 0:
+            hit = np.count_nonzero(pred[rs, cs])
+            frac[k], found[k] = hit / n, hit >= found_fraction * n
+    return frac, found
+
+
 def gt_box_scores(pred: np.ndarray, boxes, core: float = 0.5, found_fraction: float = 0.5,
                   margin: float = 25.0) -> dict[str, float]:
     """Scores of a change map ``pred`` [H, W] against ground-truth boxes [K, 4] (module
     docstring): ``gtbox_N, gtbox_found, gtbox_R, far_FP, far_N, far_frac``."""
     pred = np.asarray(pred) > 0
     boxes = np.asarray(boxes, dtype=np.float64).reshape(-1, 4)
-    found = 0
+    found = int(gt_box_cores(pred, boxes, core, found_fraction)[1].sum())
     near = np.zeros(pred.shape, bool)
     for b in boxes:
-        rs, cs = _box_slices(b, pred.shape, scale=core)
-        if rs.stop == rs.start or cs.stop == cs.start:  # a core thinner than a pixel
-            rs, cs = _box_slices(b, pred.shape, scale=core, grow=0.5)
-        n = (rs.stop - rs.start) * (cs.stop - cs.start)
-        found += int(n > 0 and np.count_nonzero(pred[rs, cs]) >= found_fraction * n)
         rs, cs = _box_slices(b, pred.shape, grow=margin)
         near[rs, cs] = True
     far = int(np.count_nonzero(pred & ~near))

@@ -276,6 +276,17 @@ def test_box_ground_truth_on_eval_views_and_training_images(tmp_path):
     assert df[df["view"] == "000"]["gtbox_N"].isna().all()
     summ = pd.read_csv(out / "scene_summary.csv").set_index("method")
     assert summ.loc["partition", "gtbox_R_pooled"] == pytest.approx(2 / 4)
+    # boxes.csv: every box of boxes.json per view and method, with its core's marked share
+    bx = pd.read_csv(out / "boxes.csv")
+    gb = bx[(bx["kind"] == "gt_box") & (bx["view"] == "after/v00")]
+    assert list(gb["method"]) == ["partition", "partition"]
+    assert list(gb["matched"]) == [True, False]
+    # box 1's core (x 4.5..9.5, y 4..8) lies in the marked block (x 3..11, y 3..9); box 2's
+    # is not marked at all
+    assert list(gb["core"]) == [1.0, 0.0]
+    assert len(bx[(bx["kind"] == "gt_box") & (bx["view"] == "001")]) == 2 * len(methods)
+    assert (bx["kind"] == "gt_box").sum() == 2 + 2 * len(methods)
+    assert bx.loc[bx["kind"] != "gt_box", "core"].isna().all()
     assert (out / "overlays" / "after" / "v00.png").is_file()
     # a malformed box and an unknown image are named
     (root / "eval" / "boxes.json").write_text(json.dumps({"001": [[5, 5, 2, 9]]}))

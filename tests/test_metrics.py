@@ -212,3 +212,18 @@ def test_gt_box_scores_core_and_far_fraction():
     assert s["gtbox_found"] == 1
     s = M.gt_box_scores(pred, np.zeros((0, 4)))
     assert s["gtbox_N"] == 0 and math.isnan(s["gtbox_R"]) and s["far_FP"] == 200
+
+
+def test_gt_box_cores_per_box():
+    boxes = [[10, 10, 30, 50], [60, 60, 80, 80], [200, 200, 220, 220]]  # the last off the map
+    pred = np.zeros((100, 100), bool)
+    pred[20:30, 15:25] = True  # half of box 1's core (x 15..25, y 20..40)
+    pred[65:75, 65:69] = True  # 4 of box 2's 10 core columns (x 65..75, y 65..75)
+    frac, found = M.gt_box_cores(pred, boxes)
+    assert frac[:2] == pytest.approx([0.5, 0.4]) and math.isnan(frac[2])
+    assert list(found) == [True, False, False]
+    # the found flags are those gt_box_scores counts, also at another core and fraction
+    for core, ff in ((0.5, 0.5), (0.8, 0.3), (1.0, 0.1)):
+        frac, found = M.gt_box_cores(pred, boxes, core, ff)
+        assert M.gt_box_scores(pred, boxes, core, ff)["gtbox_found"] == found.sum()
+    assert M.gt_box_cores(pred, np.zeros((0, 4)))[0].shape == (0,)

@@ -564,8 +564,8 @@ def evaluate_scene(scene_dir: str | Path, cameras_json: str | Path | None, out_d
     df = pd.DataFrame(rows, columns=METRIC_COLUMNS)
     box_cols = ["scene", "view", "method", "kind", "x0", "y0", "x1", "y1", "score", "matched",
                 "iou", "core"]
-    frames = [f.reindex(columns=box_cols) for f in box_frames if len(f)]
-    boxes = (pd.concat(frames, ignore_index=True)[box_cols] if frames
+    frames = [f for f in box_frames if len(f)]
+    boxes = (pd.concat(frames, ignore_index=True).reindex(columns=box_cols) if frames
              else pd.DataFrame(columns=box_cols))
     write_csv(out_dir / "metrics.csv", df)
     write_csv(out_dir / "boxes.csv", boxes)

@@ -9,9 +9,12 @@
 // The image is cut into square tiles; each Gaussian is listed (in depth order) in the tiles its
 // 3-sigma bounding box overlaps. Inside a tile the loop runs over Gaussians and, for each, over
 // the pixels of its bounding box, so small Gaussians cost only their footprint. Tiles are
-// shared among std::threads (at::get_num_threads() of them); gradients are accumulated in
-// per-thread buffers and summed at the end, with a fixed tile-to-thread split so that they
-// are the same on every run (see run_tasks).
+// shared among std::threads (at::get_num_threads() of them). Gradients are accumulated in
+// kGradParts buffers, a number that does not depend on the threads: part p holds the tiles
+// p, p + kGradParts, ... in that order, and the parts are added in part order at the end, so
+// the gradients are bitwise the same on every run and for any number of threads (a fit gives
+// the same model with --cores 1 and --cores 8). The backward pass uses at most kGradParts
+// threads.
 //
 // Compiled with -ffp-contract=off so that sigma rounds exactly as in the torch path.
 //
@@ -55,22 +58,14 @@ constexpr double kAlphaMax = 0.99;
 constexpr double kAlphaMin = 1.0 / 255.0;
 constexpr double kTMin = 1e-4;
 
-// Run fn(task, thread_id) for task in [0, n_tasks) on up to at::get_num_threads() threads.
-// Dynamic: tasks are handed out as threads free up (tiles have very uneven cost); for kernels
-// whose per-thread results do not depend on which thread ran a task (the forward pass).
-// Static (dynamic = false): thread k runs tasks k, k + n, k + 2n, ... in order, so per-thread
-// sums are formed in the same order on every run with the same thread count (the backward
-// pass: training and its resume from a checkpoint are then bitwise reproducible).
+// Run fn(task, thread_id) for task in [0, n_tasks) on up to n_threads threads. Tasks are
+// handed out as threads free up (tiles have very uneven cost), so a kernel must not let its
+// results depend on which thread ran a task: thread_id only picks scratch space.
 template <typename F>
-void run_tasks(int64_t n_tasks, int n_threads, F fn, bool dynamic = true) {
+void run_tasks(int64_t n_tasks, int n_threads, F fn) {
   n_threads = std::max(1, std::min<int>(n_threads, (int)std::max<int64_t>(n_tasks, 1)));
   std::atomic<int64_t> next{0};
-  const int nt = n_threads;
   auto worker = [&](int tid) {
-    if (!dynamic) {
-      for (int64_t t = tid; t < n_tasks; t += nt) fn(t, tid);
-      return;
-    }
     for (int64_t t = next.fetch_add(1); t < n_tasks; t = next.fetch_add(1)) fn(t, tid);
   };
   if (n_threads == 1) {
@@ -85,6 +80,10 @@ void run_tasks(int64_t n_tasks, int n_threads, F fn, bool dynamic = true) {
 }
 
 int num_threads() { return std::max(1, at::get_num_threads()); }
+
+// Gradient accumulation buffers of the backward pass (see the file comment): fixed, so the
+// order in which each gradient is summed is the same for any number of threads.
+constexpr int64_t kGradParts = 8;
 
 // Pixel index range [lo, hi] of the 3-sigma box of a Gaussian along one axis (not clipped).
 // Clamped to +-1e9 before the cast so huge or NaN values stay defined (and off the image).
@@ -368,7 +367,7 @@ void forward_tile_f32(const TileArgs& A, int64_t kb, int64_t ke, std::vector<flo
 }
 
 // Backward pass of one tile (see backward_impl for the scalar loop it mirrors): Gaussians from
-// ids[kmax] down to ids[k0]; gradients added to the per-thread records `mine`.
+// ids[kmax] down to ids[k0]; gradients added to the records `mine` (its part's buffer).
 void backward_tile_f32(const TileArgs& A, int64_t k0, int64_t kmax, const float* Tf,
                        const int32_t* LK, const float* GO, const float* GA, int64_t W,
                        int64_t pix0, float* mine, int64_t stride, bool absgrad,
@@ -683,10 +682,12 @@ std::vector<at::Tensor> backward_impl(
     int64_t tile, bool absgrad) {
   const int64_t C = means2d.size(0), N = means2d.size(1), D = colors.size(2);
   const int64_t tx_n = (W + tile - 1) / tile, ty_n = (H + tile - 1) / tile, nt = tx_n * ty_n;
-  const int nth = num_threads();
+  const int64_t n_tasks = C * nt;
+  const int64_t parts = std::max<int64_t>(1, std::min<int64_t>(kGradParts, n_tasks));
+  const int nth = (int)std::min<int64_t>(num_threads(), parts);
   const int64_t G = C * N;
   const int64_t stride = 2 + 3 + 1 + D + (absgrad ? 2 : 0);  // per-Gaussian gradient record
-  at::Tensor acc_all = at::zeros({nth, G, stride}, means2d.options());
+  at::Tensor acc_all = at::zeros({parts, G, stride}, means2d.options());
   const scalar_t* M = means2d.data_ptr<scalar_t>();
   const scalar_t* Q = conics.data_ptr<scalar_t>();
   const scalar_t* F = colors.data_ptr<scalar_t>();
@@ -708,11 +709,14 @@ std::vector<at::Tensor> backward_impl(
     packed = pack_splats(M, Q, F, O, E, C, N, D, nt, off, ids, nth);
 #endif
 
-  run_tasks(C * nt, nth, [&](int64_t task, int tid) {
+  // part p runs its tasks p, p + parts, ... in order into its own buffer; any thread may
+  // take a part (dynamic), the sums do not depend on which
+  run_tasks(parts, nth, [&](int64_t part, int tid) {
+  for (int64_t task = part; task < n_tasks; task += parts) {
     const int64_t c = task / nt, t = task % nt;
     const int64_t px0 = (t % tx_n) * tile, py0 = (t / tx_n) * tile;
     const int64_t tw = std::min(tile, W - px0), th = std::min(tile, H - py0);
-    scalar_t* mine = ACC + (int64_t)tid * G * stride;
+    scalar_t* mine = ACC + part * G * stride;
 #if GDIFF_RASTER_SIMD
     if constexpr (std::is_same<scalar_t, float>::value) {
       const int64_t pix0 = (c * H + py0) * W + px0;
@@ -723,7 +727,7 @@ std::vector<at::Tensor> backward_impl(
                         py0, tw, th};
       backward_tile_f32(A, off[c * nt + t], kmax, Tf, LK, GO, GA, W, pix0, mine, stride,
                         absgrad, scratch[tid], iscratch[tid]);
-      return;
+      continue;
     }
 #endif
     std::vector<scalar_t> T(P, 1), Tfin(P, 1), S(P * D, 0), go(P * D, 0), ga(P, 0);
@@ -796,8 +800,19 @@ std::vector<at::Tensor> backward_impl(
       r[5] += gop;
       if (absgrad) { r[6 + D] += gabs[0]; r[7 + D] += gabs[1]; }
     }
-  }, /*dynamic=*/false);
-  at::Tensor total = acc_all.sum(0);  // [G, stride]
+  }
+  });
+  // the parts added in part order, element by element (the same sums for any threads)
+  at::Tensor total = at::empty({G, stride}, means2d.options());
+  scalar_t* TOT = total.data_ptr<scalar_t>();
+  const int64_t n_el = G * stride;
+  at::parallel_for(0, n_el, 1 << 14, [=](int64_t b, int64_t e) {
+    for (int64_t i = b; i < e; ++i) {
+      scalar_t v = ACC[i];
+      for (int64_t p = 1; p < parts; ++p) v += ACC[p * n_el + i];
+      TOT[i] = v;
+    }
+  });
   at::Tensor g_m = total.narrow(1, 0, 2).reshape({C, N, 2});
   at::Tensor g_q = total.narrow(1, 2, 3).reshape({C, N, 3});
   at::Tensor g_o = total.narrow(1, 5, 1).reshape({C, N});

@@ -12,9 +12,8 @@
 // shared among std::threads (at::get_num_threads() of them). Gradients are accumulated in
 // kGradParts buffers, a number that does not depend on the threads: part p holds the tiles
 // p, p + kGradParts, ... in that order, and the parts are added in part order at the end, so
-// the gradients are bitwise the same on every run and for any number of threads (a fit gives
-// the same model with --cores 1 and --cores 8). The backward pass uses at most kGradParts
-// threads.
+// the gradients are bitwise the same on every run and for any number of threads (--cores 1
+// and --cores 8 alike). The backward pass uses at most kGradParts threads.
 //
 // Compiled with -ffp-contract=off so that sigma rounds exactly as in the torch path.
 //
@@ -712,95 +711,95 @@ std::vector<at::Tensor> backward_impl(
   // part p runs its tasks p, p + parts, ... in order into its own buffer; any thread may
   // take a part (dynamic), the sums do not depend on which
   run_tasks(parts, nth, [&](int64_t part, int tid) {
-  for (int64_t task = part; task < n_tasks; task += parts) {
-    const int64_t c = task / nt, t = task % nt;
-    const int64_t px0 = (t % tx_n) * tile, py0 = (t / tx_n) * tile;
-    const int64_t tw = std::min(tile, W - px0), th = std::min(tile, H - py0);
-    scalar_t* mine = ACC + part * G * stride;
+    for (int64_t task = part; task < n_tasks; task += parts) {
+      const int64_t c = task / nt, t = task % nt;
+      const int64_t px0 = (t % tx_n) * tile, py0 = (t / tx_n) * tile;
+      const int64_t tw = std::min(tile, W - px0), th = std::min(tile, H - py0);
+      scalar_t* mine = ACC + part * G * stride;
 #if GDIFF_RASTER_SIMD
-    if constexpr (std::is_same<scalar_t, float>::value) {
-      const int64_t pix0 = (c * H + py0) * W + px0;
-      int64_t kmax = -1;
-      for (int64_t j = 0; j < th; ++j)
-        for (int64_t i = 0; i < tw; ++i) kmax = std::max<int64_t>(kmax, LK[pix0 + j * W + i]);
-      const TileArgs A{packed.rec.get(), packed.at.data(), F, ids, c * N, D, tile, px0,
-                        py0, tw, th};
-      backward_tile_f32(A, off[c * nt + t], kmax, Tf, LK, GO, GA, W, pix0, mine, stride,
-                        absgrad, scratch[tid], iscratch[tid]);
-      continue;
-    }
-#endif
-    std::vector<scalar_t> T(P, 1), Tfin(P, 1), S(P * D, 0), go(P * D, 0), ga(P, 0);
-    std::vector<int32_t> lastk(P, -1);
-    int64_t kmax = -1;
-    for (int64_t j = 0; j < th; ++j) {
-      for (int64_t i = 0; i < tw; ++i) {
-        const int64_t q = j * tile + i;
-        const int64_t pix = (c * H + py0 + j) * W + px0 + i;
-        T[q] = Tfin[q] = Tf[pix];
-        lastk[q] = LK[pix];
-        kmax = std::max<int64_t>(kmax, LK[pix]);
-        std::copy(GO + pix * D, GO + pix * D + D, go.data() + q * D);
-        ga[q] = GA[pix];
+      if constexpr (std::is_same<scalar_t, float>::value) {
+        const int64_t pix0 = (c * H + py0) * W + px0;
+        int64_t kmax = -1;
+        for (int64_t j = 0; j < th; ++j)
+          for (int64_t i = 0; i < tw; ++i) kmax = std::max<int64_t>(kmax, LK[pix0 + j * W + i]);
+        const TileArgs A{packed.rec.get(), packed.at.data(), F, ids, c * N, D, tile, px0,
+                          py0, tw, th};
+        backward_tile_f32(A, off[c * nt + t], kmax, Tf, LK, GO, GA, W, pix0, mine, stride,
+                          absgrad, scratch[tid], iscratch[tid]);
+        continue;
       }
-    }
-    const int64_t k0 = off[c * nt + t];
-    for (int64_t k = kmax; k >= k0; --k) {
-      const int64_t g = c * N + ids[k];
-      TileSplat<scalar_t> sp;
-      if (!tile_splat(M, Q, O, E, g, px0, py0, tw, th, sp)) continue;
-      const scalar_t mx = sp.mx, my = sp.my, a = sp.a, b = sp.b, cc = sp.cc, op = sp.op;
-      const scalar_t s_max = sp.s_max;
-      const int64_t x0 = sp.x0, x1 = sp.x1, y0 = sp.y0, y1 = sp.y1;
-      const scalar_t* col = F + g * D;
-      scalar_t gm[2] = {0, 0}, gq[3] = {0, 0, 0}, gop = 0, gabs[2] = {0, 0};
-      scalar_t* gcol = mine + g * stride + 6;
-      for (int64_t j = y0; j <= y1; ++j) {
-        const scalar_t dy = my - ((scalar_t)j + (scalar_t)0.5);
-        for (int64_t i = x0; i <= x1; ++i) {
-          const int64_t q = (j - py0) * tile + (i - px0);
-          if (k > lastk[q]) continue;
-          const scalar_t dx = mx - ((scalar_t)i + (scalar_t)0.5);
-          const scalar_t sigma = (scalar_t)0.5 * (a * dx * dx + cc * dy * dy) + b * dx * dy;
-          if (sigma > s_max || sigma < 0) continue;
-          const scalar_t gauss = std::exp(-sigma);
-          const scalar_t raw = op * gauss;
-          const scalar_t alpha = std::min((scalar_t)kAlphaMax, raw);
-          if (alpha < (scalar_t)kAlphaMin) continue;
-          const scalar_t inv1m = 1 / (1 - alpha);
-          const scalar_t Ti = T[q] * inv1m;  // transmittance in front of this Gaussian
-          const scalar_t w = alpha * Ti;
-          scalar_t* Sq = S.data() + q * D;
-          const scalar_t* gq_out = go.data() + q * D;
-          scalar_t dL_dalpha = 0;
-          for (int64_t d = 0; d < D; ++d) {
-            gcol[d] += w * gq_out[d];
-            dL_dalpha += gq_out[d] * (col[d] * Ti - Sq[d] * inv1m);
-            Sq[d] += col[d] * w;
-          }
-          dL_dalpha += ga[q] * Tfin[q] * inv1m;  // render alpha = 1 - T_final
-          T[q] = Ti;
-          if (raw >= (scalar_t)kAlphaMax) continue;  // clamped: no gradient through alpha
-          const scalar_t dL_dsigma = -alpha * dL_dalpha;
-          gop += gauss * dL_dalpha;
-          const scalar_t gmx = dL_dsigma * (a * dx + b * dy);
-          const scalar_t gmy = dL_dsigma * (b * dx + cc * dy);
-          gm[0] += gmx;
-          gm[1] += gmy;
-          gabs[0] += std::abs(gmx);
-          gabs[1] += std::abs(gmy);
-          gq[0] += dL_dsigma * (scalar_t)0.5 * dx * dx;
-          gq[1] += dL_dsigma * dx * dy;
-          gq[2] += dL_dsigma * (scalar_t)0.5 * dy * dy;
+#endif
+      std::vector<scalar_t> T(P, 1), Tfin(P, 1), S(P * D, 0), go(P * D, 0), ga(P, 0);
+      std::vector<int32_t> lastk(P, -1);
+      int64_t kmax = -1;
+      for (int64_t j = 0; j < th; ++j) {
+        for (int64_t i = 0; i < tw; ++i) {
+          const int64_t q = j * tile + i;
+          const int64_t pix = (c * H + py0 + j) * W + px0 + i;
+          T[q] = Tfin[q] = Tf[pix];
+          lastk[q] = LK[pix];
+          kmax = std::max<int64_t>(kmax, LK[pix]);
+          std::copy(GO + pix * D, GO + pix * D + D, go.data() + q * D);
+          ga[q] = GA[pix];
         }
       }
-      scalar_t* r = mine + g * stride;
-      r[0] += gm[0]; r[1] += gm[1];
-      r[2] += gq[0]; r[3] += gq[1]; r[4] += gq[2];
-      r[5] += gop;
-      if (absgrad) { r[6 + D] += gabs[0]; r[7 + D] += gabs[1]; }
+      const int64_t k0 = off[c * nt + t];
+      for (int64_t k = kmax; k >= k0; --k) {
+        const int64_t g = c * N + ids[k];
+        TileSplat<scalar_t> sp;
+        if (!tile_splat(M, Q, O, E, g, px0, py0, tw, th, sp)) continue;
+        const scalar_t mx = sp.mx, my = sp.my, a = sp.a, b = sp.b, cc = sp.cc, op = sp.op;
+        const scalar_t s_max = sp.s_max;
+        const int64_t x0 = sp.x0, x1 = sp.x1, y0 = sp.y0, y1 = sp.y1;
+        const scalar_t* col = F + g * D;
+        scalar_t gm[2] = {0, 0}, gq[3] = {0, 0, 0}, gop = 0, gabs[2] = {0, 0};
+        scalar_t* gcol = mine + g * stride + 6;
+        for (int64_t j = y0; j <= y1; ++j) {
+          const scalar_t dy = my - ((scalar_t)j + (scalar_t)0.5);
+          for (int64_t i = x0; i <= x1; ++i) {
+            const int64_t q = (j - py0) * tile + (i - px0);
+            if (k > lastk[q]) continue;
+            const scalar_t dx = mx - ((scalar_t)i + (scalar_t)0.5);
+            const scalar_t sigma = (scalar_t)0.5 * (a * dx * dx + cc * dy * dy) + b * dx * dy;
+            if (sigma > s_max || sigma < 0) continue;
+            const scalar_t gauss = std::exp(-sigma);
+            const scalar_t raw = op * gauss;
+            const scalar_t alpha = std::min((scalar_t)kAlphaMax, raw);
+            if (alpha < (scalar_t)kAlphaMin) continue;
+            const scalar_t inv1m = 1 / (1 - alpha);
+            const scalar_t Ti = T[q] * inv1m;  // transmittance in front of this Gaussian
+            const scalar_t w = alpha * Ti;
+            scalar_t* Sq = S.data() + q * D;
+            const scalar_t* gq_out = go.data() + q * D;
+            scalar_t dL_dalpha = 0;
+            for (int64_t d = 0; d < D; ++d) {
+              gcol[d] += w * gq_out[d];
+              dL_dalpha += gq_out[d] * (col[d] * Ti - Sq[d] * inv1m);
+              Sq[d] += col[d] * w;
+            }
+            dL_dalpha += ga[q] * Tfin[q] * inv1m;  // render alpha = 1 - T_final
+            T[q] = Ti;
+            if (raw >= (scalar_t)kAlphaMax) continue;  // clamped: no gradient through alpha
+            const scalar_t dL_dsigma = -alpha * dL_dalpha;
+            gop += gauss * dL_dalpha;
+            const scalar_t gmx = dL_dsigma * (a * dx + b * dy);
+            const scalar_t gmy = dL_dsigma * (b * dx + cc * dy);
+            gm[0] += gmx;
+            gm[1] += gmy;
+            gabs[0] += std::abs(gmx);
+            gabs[1] += std::abs(gmy);
+            gq[0] += dL_dsigma * (scalar_t)0.5 * dx * dx;
+            gq[1] += dL_dsigma * dx * dy;
+            gq[2] += dL_dsigma * (scalar_t)0.5 * dy * dy;
+          }
+        }
+        scalar_t* r = mine + g * stride;
+        r[0] += gm[0]; r[1] += gm[1];
+        r[2] += gq[0]; r[3] += gq[1]; r[4] += gq[2];
+        r[5] += gop;
+        if (absgrad) { r[6 + D] += gabs[0]; r[7 + D] += gabs[1]; }
+      }
     }
-  }
   });
   // the parts added in part order, element by element (the same sums for any threads)
   at::Tensor total = at::empty({G, stride}, means2d.options());

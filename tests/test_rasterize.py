@@ -414,8 +414,8 @@ def test_options_from_config():
 def test_gradients_are_reproducible_with_threads(backend):
     """Gradients summed over tiles on several threads come out bitwise equal on every run
     (training resumed from a checkpoint must follow the uninterrupted run exactly); those of
-    the compiled kernels also for any number of threads (a fit gives the same model with
-    --cores 1 and --cores 2; the torch reference's scatter-adds are torch's own)."""
+    the compiled kernels also for any number of threads (the torch reference's scatter-adds
+    are torch's own)."""
     sc = random_scene(3000, seed=7, n_cams=2, width=96, height=64, scale_range=(0.01, 0.3),
                       spread=1.2)
     names = ("means", "quats", "scales", "opacities", "colors")

@@ -4,6 +4,7 @@ poses stage, and the ROS tf-yaml importer."""
 
 from __future__ import annotations
 
+import dataclasses
 import json
 from pathlib import Path
 
@@ -145,7 +146,8 @@ def test_seeding_threshold_is_per_image(synth_tiny_dir, gt_tiny, tmp_path):
     # enough points overall: only the parts of each photo no point projects into are seeded
     part = run_poses(scene, tmp_path / "part", PosesOptions(num_threads=1, min_points_per_image=1,
                                                             seed_points_per_image=400,
-                                                            seed_min_empty=0.0),
+                                                            seed_min_empty=0.0,
+                                                            seed_sweep_extra=0),
                      images=images)
     xyz, _ = read_points(tmp_path / "part" / "points.ply")
     n_tri = part["num_points_triangulated"]
@@ -172,7 +174,7 @@ def test_seeding_threshold_is_per_image(synth_tiny_dir, gt_tiny, tmp_path):
         start += m
     high = run_poses(scene, tmp_path / "high",
                      PosesOptions(num_threads=1, min_points_per_image=10000,
-                                  seed_points_per_image=50), images=images)
+                                  seed_points_per_image=50, seed_sweep_extra=0), images=images)
     assert high["num_points_triangulated"] == low["num_points_triangulated"]
     assert high["num_points_seeded"] == 50 * len(cams)
     xyz, _ = read_points(tmp_path / "high" / "points.ply")
@@ -523,3 +525,51 @@ def test_tf_yaml_import_errors(tmp_path):
     (src / "robot" / "camera_info.json").unlink()
     with pytest.raises(SceneError, match="camera_info"):
         import_scene("tf-yaml", src, tmp_path / "c")
+
+
+# ------------------------------------------------------------------ plane sweep
+
+
+def test_seed_depths_from_the_plane_sweep_match_the_rendered_depth(synth_tiny_dir):
+    """Where a textured patch of one photo is seen from elsewhere by another photo of the
+    scene, the seed takes the depth at which they match: on a rendered scene that is the
+    rendered depth. Untextured photos and a photo from the same place give no depth."""
+    from gdiff.synth import build_scene
+    from gdiff.sfm.seed import _grey, seed_frustum_points, sweep_depths
+
+    scene = build_scene("tiny", 0)  # the scene of synth_tiny_dir
+    cams = read_cameras_file(Path(synth_tiny_dir) / "gt_cameras.json")
+    cams = [c for c in cams if c.set == "before"]
+    truth = [scene.render(c, "before")["depth"] for c in cams]
+    greys = [_grey(read_image(Path(synth_tiny_dir) / c.image)) for c in cams]
+    rng = np.random.default_rng(0)
+    c = cams[0]
+    u = rng.uniform(8, c.width - 8, 400)
+    v = rng.uniform(8, c.height - 8, 400)
+    z = truth[0][v.astype(int), u.astype(int)].astype(np.float64)
+    near, far = 0.5 * z.min(), 1.5 * z.max()
+    step = np.log(far / near) / 63  # the sweep's depth step at this range (64 depths)
+    d = sweep_depths(cams, greys, 0, u, v, near, far)
+    found = np.isfinite(d)
+    assert found.mean() > 0.3  # the textured part of the photo
+    err = np.abs(np.log(d[found] / z[found]))
+    assert np.median(err) < step and (err < 0.2).mean() > 0.9
+    # nothing to match: no depth
+    flat = [np.full_like(g, 0.5) for g in greys]
+    assert np.isnan(sweep_depths(cams, flat, 0, u, v, near, far)).all()
+    # the only other photo is taken from the same place: it cannot tell depths apart
+    twin = [c, dataclasses.replace(c, image="twin.png")]
+    assert np.isnan(sweep_depths(twin, [greys[0], greys[0]], 0, u, v, near, far)).all()
+
+    # seeding: 100 points per photo, swept where the sweep finds a depth, plus the extra
+    # swept points; the first photo's swept points lie on its rendered surface
+    n = [100] * len(cams)
+    xyz, rgb, swept = seed_frustum_points(cams, synth_tiny_dir, n, near, far, extra=3)
+    assert len(xyz) > sum(n) and swept[sum(n):].all() and 0 < swept[:sum(n)].sum() < sum(n)
+    plain, _, none = seed_frustum_points(cams, synth_tiny_dir, n, near, far, sweep=False)
+    assert len(plain) == sum(n) and not none.any()
+    p = xyz[:100][swept[:100]].astype(np.float64) @ c.w2c[:3, :3].T + c.w2c[:3, 3]
+    col = np.clip((c.fx * p[:, 0] / p[:, 2] + c.cx).astype(int), 0, c.width - 1)
+    row = np.clip((c.fy * p[:, 1] / p[:, 2] + c.cy).astype(int), 0, c.height - 1)
+    err = np.abs(np.log(p[:, 2] / truth[0][row, col]))
+    assert np.median(err) < step and (err < 0.2).mean() > 0.9

@@ -92,6 +92,11 @@ class PosesOptions:
             cells (a dense capture leaves a few per cent empty, which the fit's densification
             fills from the neighbouring points; points seeded there at random depths are
             floaters).
+        seed_sweep_extra: a seeded point takes its depth from a plane sweep of the photos
+            where they agree on one (a textured patch seen from elsewhere), else a random
+            depth; per seeded point this many more pixels are drawn and swept, and those the
+            sweep places are added, so textured surfaces get denser seeds where they stand.
+            0 = only the ``seed_points_per_image`` points.
         refine_known: known poses (cameras.json / transforms.json) are refined by bundle
             adjustment of the matched features before anything uses them, and mapped back
             into their own frame and scale (:mod:`gdiff.sfm.refine_known`). A robot's poses
@@ -146,6 +151,7 @@ class PosesOptions:
     seed_points_per_image: int = 1000
     seed_cells: int = 16
     seed_min_empty: float = 0.5
+    seed_sweep_extra: int = 3
     refine_known: bool = True
     known_max_error: float = 0.03
     max_unregistered_fraction: float = 0.2
@@ -173,6 +179,8 @@ class PosesOptions:
             raise ValueError("max_reproj_error must be > 0 (pixels)")
         if self.seed_cells < 0 or not 0.0 <= self.seed_min_empty <= 1.0:
             raise ValueError("seed_cells must be >= 0 and seed_min_empty in [0, 1]")
+        if self.seed_sweep_extra < 0:
+            raise ValueError("seed_sweep_extra must be >= 0")
         if self.min_points_per_image < 0 or self.seed_points_per_image < 1:
             raise ValueError("min_points_per_image must be >= 0 and seed_points_per_image "
                              ">= 1")

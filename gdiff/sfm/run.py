@@ -129,8 +129,13 @@ def run_poses(scene_dir: str | os.PathLike, out_dir: str | os.PathLike,
         n_seed = int(sum(counts))
         if n_seed:
             near, far, how = depth_range(cams, xyz)
-            sx, sc = seed_frustum_points(cams, work / image_dir if image_dir else photos, counts,
-                                         near, far, seed=opts.seed, cells=cells)
+            sx, sc, swept = seed_frustum_points(cams, work / image_dir if image_dir else photos,
+                                                counts, near, far, seed=opts.seed, cells=cells,
+                                                extra=opts.seed_sweep_extra)
+            log.info("seeded points: %d of %d at the depth where the photos agree (plane sweep; "
+                     "%d of them from poses.seed_sweep_extra), the others at random depths",
+                     int(swept.sum()), len(swept), len(swept) - n_seed)
+            n_seed = len(swept)
             if cells is None:
                 log.info("%d triangulated points < %d (poses.min_points_per_image %d x %d "
                          "images): seeded %d points in the camera frusta, depths %.3g to %.3g "

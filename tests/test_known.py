@@ -97,16 +97,19 @@ def test_cameras_json_distortion_forms_and_errors():
 
 def test_known_poses_without_sparse_points_seed_the_frusta(gt_tiny, tmp_path):
     """Photos with nothing to match (independent noise): no point can be triangulated, yet
-    the fit gets a full point cloud inside the cameras' views, coloured from the photos."""
+    the fit gets a full point cloud inside the cameras' views, coloured from the photos. The
+    eval photos are posed but seed nothing (they must not shape the fit)."""
     scene = tmp_path / "scene"
     rng = np.random.default_rng(0)
     cams = [c for c in gt_tiny if c.set in ("before", "after")]
-    for c in cams:
+    evals = [c for c in gt_tiny if c.set in ("eval_before", "eval_after")]
+    assert evals
+    for c in cams + evals:
         write_image(scene / c.image, rng.random((c.height, c.width, 3), dtype=np.float32))
-    (scene / "cameras.json").write_text(json.dumps(cameras_to_json(cams)))
+    (scene / "cameras.json").write_text(json.dumps(cameras_to_json(cams + evals)))
     out = tmp_path / "poses"
     summary = run_poses(scene, out, PosesOptions(num_threads=1, seed_points_per_image=200),
-                        images=[(c.image, c.set) for c in cams])
+                        images=[(c.image, c.set) for c in cams + evals])
     assert summary["num_points"] == summary["num_points_triangulated"] == 0
     assert summary["num_points_seeded"] == 200 * len(cams)
     xyz, rgb = read_points(out / "points.ply")

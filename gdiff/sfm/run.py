@@ -113,12 +113,14 @@ def run_poses(scene_dir: str | os.PathLike, out_dir: str | os.PathLike,
             image_dir = "images"
         xyz, rgb = _points_of(rec)
         n_tri = len(xyz)
-        n_min = opts.min_points_per_image * len(cams)
+        # seeds come from the training photos only: an eval photo must not shape the fit
+        train = [c for c in cams if c.set in ("before", "after")]
+        n_min = opts.min_points_per_image * len(train)
         counts, cells = [], None
         if n_tri < n_min:  # too few to trust where they are: seed every photo whole
-            counts = [opts.seed_points_per_image] * len(cams)
+            counts = [opts.seed_points_per_image] * len(train)
         elif opts.seed_cells > 0:  # seed the parts of each photo no point covers
-            cells = empty_cells(cams, xyz, opts.seed_cells)
+            cells = empty_cells(train, xyz, opts.seed_cells)
             empty = float(np.mean([c.mean() for c in cells]))
             if empty >= opts.seed_min_empty:
                 counts = [int(round(opts.seed_points_per_image * c.mean())) for c in cells]
@@ -128,8 +130,8 @@ def run_poses(scene_dir: str | os.PathLike, out_dir: str | os.PathLike,
                          100 * opts.seed_min_empty)
         n_seed = int(sum(counts))
         if n_seed:
-            near, far, how = depth_range(cams, xyz)
-            sx, sc, swept = seed_frustum_points(cams, work / image_dir if image_dir else photos,
+            near, far, how = depth_range(train, xyz)
+            sx, sc, swept = seed_frustum_points(train, work / image_dir if image_dir else photos,
                                                 counts, near, far, seed=opts.seed, cells=cells,
                                                 extra=opts.seed_sweep_extra)
             log.info("seeded points: %d of %d at the depth where the photos agree (plane sweep; "
@@ -139,7 +141,7 @@ def run_poses(scene_dir: str | os.PathLike, out_dir: str | os.PathLike,
             if cells is None:
                 log.info("%d triangulated points < %d (poses.min_points_per_image %d x %d "
                          "images): seeded %d points in the camera frusta, depths %.3g to %.3g "
-                         "(from the %s)", n_tri, n_min, opts.min_points_per_image, len(cams),
+                         "(from the %s)", n_tri, n_min, opts.min_points_per_image, len(train),
                          n_seed, near, far, how)
             else:
                 log.info("no triangulated point projects into %.1f %% of the photos' grid "

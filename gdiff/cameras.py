@@ -42,6 +42,7 @@ from .errors import SceneError
 from .io import read_json, write_json
 
 SETS = ("before", "after", "eval_before", "eval_after")
+TRAIN_SETS = ("before", "after")  # the photos a fit (and the points it starts from) may use
 SET_TIME = {"before": 0, "after": 1, "eval_before": 0, "eval_after": 1}
 
 # OpenGL / nerfstudio camera axes (x right, y up, z backward) -> OpenCV: flip y and z.

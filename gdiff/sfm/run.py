@@ -12,7 +12,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..cameras import SETS, Camera, save_cameras
+from ..cameras import SETS, TRAIN_SETS, Camera, save_cameras
 from ..errors import PosesError, SceneError
 from ..splat.ply import write_points
 from .colmap import _colmap_logging, _points_of, _run_colmap
@@ -114,7 +114,7 @@ def run_poses(scene_dir: str | os.PathLike, out_dir: str | os.PathLike,
         xyz, rgb = _points_of(rec)
         n_tri = len(xyz)
         # seeds come from the training photos only: an eval photo must not shape the fit
-        train = [c for c in cams if c.set in ("before", "after")]
+        train = [c for c in cams if c.set in TRAIN_SETS]
         n_min = opts.min_points_per_image * len(train)
         counts, cells = [], None
         if n_tri < n_min:  # too few to trust where they are: seed every photo whole

@@ -90,7 +90,7 @@ import numpy as np
 import pandas as pd
 import torch
 
-from ..cameras import Camera, image_root, load_cameras
+from ..cameras import TRAIN_SETS, Camera, image_root, load_cameras
 from ..device import resolve_device
 from ..errors import SceneError, TrainingError
 from ..io import read_image, remove_stale_temporaries, save_torch, write_csv
@@ -105,7 +105,6 @@ from .render import rasterize_gaussians
 
 log = logging.getLogger("gdiff.splat.train")
 
-TRAIN_SETS = ("before", "after")
 CKPT_FORMAT = "gdiff.fit-checkpoint"
 # options that do not change the result (a checkpoint stays valid when they change)
 _NON_RESULT_OPTIONS = ("checkpoint_every", "log_every", "keep_checkpoint")

@@ -20,3 +20,15 @@ def synth_tiny_dir(tmp_path_factory):
     from gdiff import synth
 
     return synth.make_scene(tmp_path_factory.mktemp("synth") / "tiny", "tiny", 0)
+
+
+@pytest.fixture
+def torch_threads():
+    """``torch_threads(n)`` sets torch's intra-op thread count inside a test; the count the
+    test started with is restored when it ends (passed, failed or interrupted), so no test
+    leaves the worker on another count for the tests after it."""
+    import torch
+
+    before = torch.get_num_threads()
+    yield torch.set_num_threads
+    torch.set_num_threads(before)

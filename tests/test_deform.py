@@ -246,22 +246,18 @@ def test_compiled_lookup_matches_grid_sample_values_and_gradients():
             torch.testing.assert_close(a, b, rtol=1e-4, atol=1e-5)
 
 
-def test_compiled_lookup_gradient_is_the_same_for_any_thread_count():
+def test_compiled_lookup_gradient_is_the_same_for_any_thread_count(torch_threads):
     """The backward kernel scatters parts of the points in parallel into their own tables:
     the table gradient must be bitwise the same with 1 and 2 threads (9000 points: 2 parts)."""
     hp = _random_hexplane(2, (9, 8, 6), 4, 4, [-1.0, -1.0, -1.0], [1.0, 1.0, 1.0])
     xyz = torch.rand(9000, 3) * 2 - 1
     w = torch.randn(9000, 8)
     grads = []
-    n_threads = torch.get_num_threads()
-    try:
-        for k in (1, 2):
-            torch.set_num_threads(k)
-            hp.zero_grad()
-            (hp(xyz, 0.6) * w).sum().backward()
-            grads.append([p.grad.clone() for p in hp.grids])
-    finally:
-        torch.set_num_threads(n_threads)
+    for k in (1, 2):
+        torch_threads(k)
+        hp.zero_grad()
+        (hp(xyz, 0.6) * w).sum().backward()
+        grads.append([p.grad.clone() for p in hp.grids])
     for a, b in zip(*grads):
         assert torch.equal(a, b)
     assert any(bool(g.abs().sum() > 0) for g in grads[0])

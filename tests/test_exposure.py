@@ -73,7 +73,6 @@ def _fit_and_score(scene, out, exposure: bool, **options):
     the eval views, both up to one global colour transform per view."""
     from gdiff.splat.train import fit_scene
 
-    torch.set_num_threads(1)
     fit_scene(scene.dir, scene.cameras, scene.points, out,
               small_options(exposure=exposure, checkpoint_every=0, **options), device="cpu")
     model = load_model(out / "model.pt", "cpu")
@@ -91,10 +90,11 @@ def _fit_and_score(scene, out, exposure: bool, **options):
     return float(np.mean(changed)), float(np.mean(quality))
 
 
-def test_exposure_jitter_is_not_learnt_as_a_change(jittered, tmp_path):
+def test_exposure_jitter_is_not_learnt_as_a_change(jittered, tmp_path, torch_threads):
     """The default fit renders one scene at both times. The correction's own share is measured
     with the price on change over time off (``time_change_weight`` 0), which otherwise also
     takes up part of the jitter: without the correction the gains are then learnt as change."""
+    torch_threads(1)  # the fits as measured (one thread); the worker's count comes back after
     changed, _ = _fit_and_score(jittered, tmp_path / "default", True)
     changed_on, psnr_on = _fit_and_score(jittered, tmp_path / "on", True, time_change_weight=0.0)
     changed_off, psnr_off = _fit_and_score(jittered, tmp_path / "off", False,

@@ -484,7 +484,7 @@ def test_time_change_weight_shares_gaussians_between_the_times(scene, fitted, tm
     assert d_in > 3.0 * d_out, (d_in, d_out)
 
 
-def test_short_fit_does_not_depend_on_the_thread_count(scene, tmp_path):
+def test_short_fit_does_not_depend_on_the_thread_count(scene, tmp_path, torch_threads):
     """A short fit (densification included) gives the same model on one thread and on two:
     every Gaussian parameter and the deformation field bitwise equal, so the compiled kernels
     (rasterizer, projection, colours, HexPlane) sum in an order no thread count changes. A
@@ -492,15 +492,11 @@ def test_short_fit_does_not_depend_on_the_thread_count(scene, tmp_path):
     results")."""
     opts = small_options(coarse_iters=25, fine_iters=25, densify_from=10, densify_every=10,
                          densify_until=45, checkpoint_every=100, log_every=5)
-    threads = torch.get_num_threads()
     models = []
-    try:
-        for nt in (1, 2):
-            torch.set_num_threads(nt)
-            fit_scene(scene.dir, scene.cameras, scene.points, tmp_path / str(nt), opts, "cpu")
-            models.append(torch.load(tmp_path / str(nt) / "model.pt", weights_only=False))
-    finally:
-        torch.set_num_threads(threads)
+    for nt in (1, 2):
+        torch_threads(nt)
+        fit_scene(scene.dir, scene.cameras, scene.points, tmp_path / str(nt), opts, "cpu")
+        models.append(torch.load(tmp_path / str(nt) / "model.pt", weights_only=False))
     a, b = (m["state_dict"] for m in models)
     assert a.keys() == b.keys()
     for k in a:

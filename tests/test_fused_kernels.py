@@ -102,24 +102,20 @@ def test_fused_sh_matches_torch(degree):
         torch.testing.assert_close(b, a, atol=1e-12, rtol=0)
 
 
-def test_fused_gradients_do_not_depend_on_threads():
+def test_fused_gradients_do_not_depend_on_threads(torch_threads):
     viewmats, Ks = _cameras(torch.float32)
     base = _gaussians(20000, torch.float32, seed=2)
     sh0 = torch.randn(20000, 16, 3, generator=torch.Generator().manual_seed(1))
-    threads = torch.get_num_threads()
     grads = []
-    try:
-        for nt in (1, 3):
-            torch.set_num_threads(nt)
-            params = [p.clone().requires_grad_(True) for p in base]
-            sh = sh0.clone().requires_grad_(True)
-            out = csrc.project_cpp(*params, viewmats, Ks, 160, 120)
-            dirs = params[0][None] - R.camera_centers(viewmats)[:, None]
-            col = csrc.sh_to_color_cpp(3, sh, dirs)
-            (out["means2d"].sum() + out["conics"].sum() + col.square().sum()).backward()
-            grads.append([p.grad for p in params] + [sh.grad])
-    finally:
-        torch.set_num_threads(threads)
+    for nt in (1, 3):
+        torch_threads(nt)
+        params = [p.clone().requires_grad_(True) for p in base]
+        sh = sh0.clone().requires_grad_(True)
+        out = csrc.project_cpp(*params, viewmats, Ks, 160, 120)
+        dirs = params[0][None] - R.camera_centers(viewmats)[:, None]
+        col = csrc.sh_to_color_cpp(3, sh, dirs)
+        (out["means2d"].sum() + out["conics"].sum() + col.square().sum()).backward()
+        grads.append([p.grad for p in params] + [sh.grad])
     for a, b in zip(*grads):
         assert torch.equal(a, b)
 

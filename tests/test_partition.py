@@ -768,7 +768,7 @@ def test_checkpoint_of_other_options_is_not_resumed(tmp_path, caplog):
     assert "resuming" in caplog.text and "iteration 3" in caplog.text
 
 
-def test_blend_and_neighbour_gradients_are_reproducible_with_threads():
+def test_blend_and_neighbour_gradients_are_reproducible_with_threads(torch_threads):
     """The gradients of the cached-weight blend and of L3d gather repeated Gaussians; they sum
     those repeats in the same order on every run with several threads, so training (and its
     resume from a checkpoint) is reproducible."""
@@ -784,16 +784,12 @@ def test_blend_and_neighbour_gradients_are_reproducible_with_threads():
     nbr = torch.randint(0, n, (5000, 16), generator=g)
     w = torch.randn(side, side, generator=g)
     logits0 = torch.randn(n, 2, generator=g)
-    threads = torch.get_num_threads()
-    torch.set_num_threads(4)
-    try:
-        grads = []
-        for _ in range(4):
-            z = torch.randn(n, generator=torch.Generator().manual_seed(1)).requires_grad_(True)
-            logits = logits0.clone().requires_grad_(True)
-            ((render_blended(bw, z) * w).sum() + neighbour_kl(logits, sample, nbr)).backward()
-            grads.append((z.grad, logits.grad))
-    finally:
-        torch.set_num_threads(threads)
+    torch_threads(4)
+    grads = []
+    for _ in range(4):
+        z = torch.randn(n, generator=torch.Generator().manual_seed(1)).requires_grad_(True)
+        logits = logits0.clone().requires_grad_(True)
+        ((render_blended(bw, z) * w).sum() + neighbour_kl(logits, sample, nbr)).backward()
+        grads.append((z.grad, logits.grad))
     for gz, gl in grads[1:]:
         assert torch.equal(gz, grads[0][0]) and torch.equal(gl, grads[0][1])

@@ -411,7 +411,7 @@ def test_options_from_config():
 
 
 @pytest.mark.parametrize("backend", BACKENDS)
-def test_gradients_are_reproducible_with_threads(backend):
+def test_gradients_are_reproducible_with_threads(backend, torch_threads):
     """Gradients summed over tiles on several threads come out bitwise equal on every run
     (training resumed from a checkpoint must follow the uninterrupted run exactly); those of
     the compiled kernels also for any number of threads (the torch reference's scatter-adds
@@ -420,19 +420,15 @@ def test_gradients_are_reproducible_with_threads(backend):
                       spread=1.2)
     names = ("means", "quats", "scales", "opacities", "colors")
     w = torch.rand(2, 64, 96, 3, generator=torch.Generator().manual_seed(1))
-    threads = torch.get_num_threads()
-    try:
-        grads = []
-        # 4: more threads than tiles per thread
-        for nt in (4, 4, 4) + ((1, 2, 3, 16) if backend == "cpp" else ()):
-            torch.set_num_threads(nt)
-            params = [sc[k].clone().requires_grad_(True) for k in names]
-            out, _, _ = R.rasterize(*params, sc["viewmats"], sc["Ks"], sc["width"],
-                                    sc["height"], backend=backend, tile_size=8)
-            (out * w).sum().backward()
-            grads.append([p.grad for p in params])
-    finally:
-        torch.set_num_threads(threads)
+    grads = []
+    # 4: more threads than tiles per thread
+    for nt in (4, 4, 4) + ((1, 2, 3, 16) if backend == "cpp" else ()):
+        torch_threads(nt)
+        params = [sc[k].clone().requires_grad_(True) for k in names]
+        out, _, _ = R.rasterize(*params, sc["viewmats"], sc["Ks"], sc["width"],
+                                sc["height"], backend=backend, tile_size=8)
+        (out * w).sum().backward()
+        grads.append([p.grad for p in params])
     for g in grads[1:]:
         for name, a, b in zip(names, grads[0], g):
             assert torch.equal(a, b), name

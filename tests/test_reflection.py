@@ -132,13 +132,10 @@ def _interior_psnr(pred, truth):
 
 
 @pytest.fixture
-def one_thread():
+def one_thread(torch_threads):
     """Many small steps: one thread is as fast alone and ~10x faster than two threads when
     the other test worker uses both cores too."""
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
+    torch_threads(1)
 
 
 def test_highlight_learnt_from_some_views_appears_at_a_novel_view(tmp_path, one_thread):

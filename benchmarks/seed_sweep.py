@@ -26,7 +26,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from gdiff.cameras import image_root, load_cameras  # noqa: E402
 from gdiff.io import read_image  # noqa: E402
-from gdiff.sfm.seed import _grey, depth_range, sweep_depths  # noqa: E402
+from gdiff.sfm.seed import _grey, _project, depth_range, sweep_depths  # noqa: E402
 
 
 def measure(poses_dir: Path, scene: Path | None = None) -> dict:
@@ -49,15 +49,13 @@ def measure(poses_dir: Path, scene: Path | None = None) -> dict:
     t = time.perf_counter()
     errs, n = [], 0
     for i, c in enumerate(cams):
-        p = X @ c.w2c[:3, :3].T + c.w2c[:3, 3]
-        with np.errstate(invalid="ignore", divide="ignore"):
-            u = c.fx * p[:, 0] / p[:, 2] + c.cx
-            v = c.fy * p[:, 1] / p[:, 2] + c.cy
-        m = (p[:, 2] > 0) & (u > 10) & (u < c.width - 10) & (v > 10) & (v < c.height - 10)
+        uv, z = _project(c, X)  # the points in front of the camera
+        u, v = uv[:, 0], uv[:, 1]
+        m = (u > 10) & (u < c.width - 10) & (v > 10) & (v < c.height - 10)
         d = sweep_depths(cams, greys, i, u[m], v[m], near, far)
         ok = np.isfinite(d)
         n += int(m.sum())
-        errs.append(np.abs(np.log(d[ok] / p[m, 2][ok])))
+        errs.append(np.abs(np.log(d[ok] / z[m][ok])))
     e = np.concatenate(errs) if errs else np.zeros(0)
     return dict(poses=str(poses_dir), points=len(X), projections=n,
                 swept=100 * len(e) / max(n, 1), median_log=float(np.median(e)) if e.size else np.nan,

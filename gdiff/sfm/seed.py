@@ -158,14 +158,15 @@ def seed_frustum_points(cams: list[Camera], image_root: str | Path, n: int | lis
             u = (k[pick] + rng.uniform(0, 1, size)) * w / cols
             v = (r[pick] + rng.uniform(0, 1, size)) * h / rows
         d = np.exp(rng.uniform(np.log(near), np.log(far), size))
+        # camera pixel coordinates (the image may be stored at another size than the camera's)
+        uc, vc = u * cam.width / w, v * cam.height / h
         ok = np.zeros(size, bool)
         if greys is not None:
-            found = sweep_depths(cams, greys, i, u * cam.width / w, v * cam.height / h, near, far)
+            found = sweep_depths(cams, greys, i, uc, vc, near, far)
             ok = np.isfinite(found)
             d[ok] = found[ok]
-        # pixel -> camera ray (the image may be stored at another size than the camera's)
-        x = (u * cam.width / w - cam.cx) / cam.fx
-        y = (v * cam.height / h - cam.cy) / cam.fy
+        x = (uc - cam.cx) / cam.fx  # pixel -> camera ray
+        y = (vc - cam.cy) / cam.fy
         p_cam = np.stack([x * d, y * d, d], axis=1)
         xyz = (cam.c2w[:3, :3] @ p_cam.T + cam.c2w[:3, 3:4]).T.astype(np.float32)
         col = img[np.minimum(v.astype(int), h - 1), np.minimum(u.astype(int), w - 1)]

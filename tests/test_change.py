@@ -1203,7 +1203,7 @@ def test_flat_change_the_photos_show_alike_is_the_fits_own():
         for t, rgb in (("t0", rgb0), ("t1", rgb1)):
             ids[("p1", t, i)] = np.ones(z.shape, np.int32)
             frames[("p1", t, i)] = dict(depth=z.copy(), camera=cam, rgb=rgb)
-    o = CompareOptions(observed_min_views=1, observed_min_parallax=0.0)
+    o = CompareOptions(observed_min_views=1, observed_min_parallax=0.0, complete_reach=0.0)
 
     def flat_pixels(photos, options=o):
         masks, _ = compare_paths(ids, frames, options, keys=keys, photos=photos)
@@ -1218,6 +1218,14 @@ def test_flat_change_the_photos_show_alike_is_the_fits_own():
                        dataclasses.replace(o, flat_photo_contrast=0.0)) == found  # not asked
     one_time = {k: bare[k[1]] for k, t in keys.items() if t == 0}
     assert flat_pixels(one_time) == found  # the photos cannot tell
+    # completed at the key frames (gdiff.compare.complete): more of the poster, nothing else
+    completed = dataclasses.replace(o, complete_reach=1.0)
+    assert flat_pixels(real, completed) > found
+    masks, _ = compare_paths(ids, frames, completed, keys=keys, photos=real)
+    plain, _ = compare_paths(ids, frames, o, keys=keys, photos=real)
+    for k, (m0, m1) in masks.items():
+        assert not (m0 & ~plain[k][0] & ~truth[k[1]]).any()
+        assert np.array_equal(m1, plain[k][1]) or keys[k] == 1
 
 
 def test_only_seen_region_is_confirmed_by_its_colours_where_the_photos_differ_too():
@@ -1637,3 +1645,124 @@ def test_pair_scores_at_once_equal_the_pairwise_definitions():
         for j in range(15):
             assert B[i, j] == pytest.approx(_bhattacharyya(hists[i], hists[25 + j]), abs=1e-12)
     assert apart.any() and (~apart).any() and (B > 0.5).any() and (B == 0).any()
+
+
+def _textured(rng, h=120, w=160):
+    """sRGB [h, w, 3]: a busy pattern (a patterned fabric) at the scale of a few pixels."""
+    base = cv2.GaussianBlur(rng.random((h, w, 3)).astype(np.float32), (0, 0), 1.5)
+    return np.clip(0.25 + 1.5 * (base - 0.5), 0.0, 1.0) * 0.6 + 0.2
+
+
+def test_completion_grows_a_confirmed_piece_into_what_the_photo_shows():
+    """A red can stands on patterned fabric in the photo; the other time's render shows the
+    fabric alone, a pixel off (misaligned edges). The change mask has the can's top piece only.
+    Grown, it covers the can and barely more; a piece of the mask on the fabric, which the
+    photo shows as the other time does, does not grow; nor does any piece when asked not to;
+    a far reach stays on the can."""
+    from gdiff.compare.complete import difference, grow_pieces, noise_floor
+
+    rng = np.random.default_rng(0)
+    fabric = _textured(rng)
+    yy, xx = np.mgrid[:120, :160]
+    can = (np.abs(xx - 80) <= 10) & (yy >= 20) & (yy <= 100)
+    photo = fabric.copy()
+    photo[can] = (0.75, 0.08, 0.1)
+    other = np.roll(fabric, 1, axis=1)  # the other time: fabric only, a pixel off
+    own = cv2.GaussianBlur(photo, (0, 0), 1.2)  # the fit's own render: blurred
+    d_other = difference(photo, other)
+    floor = noise_floor(d_other, difference(photo, own))
+    top = can & (yy <= 60)  # its upper half
+    false = (np.abs(xx - 30) <= 6) & (np.abs(yy - 60) <= 6)
+    grown, n = grow_pieces(top | false, d_other, floor, reach=1.0)
+    assert n == 1
+    assert (grown & can).sum() > 0.95 * can.sum()
+    rim = cv2.dilate(can.astype(np.uint8), np.ones((5, 5), np.uint8)) > 0
+    assert not (grown & ~rim & ~false).any()
+    assert np.array_equal(grown & false, false) and not (grown & ~false & ~rim).any()
+    assert np.array_equal(grow_pieces(top, d_other, floor, reach=0.0)[0], top)
+    far, _ = grow_pieces(top, d_other, floor, reach=5.0)
+    assert not (far & ~rim).any()
+    hidden = np.ones_like(can)  # pixels where a render shows no surface are never added
+    hidden[60:, :] = False
+    part, _ = grow_pieces(top, d_other, floor, reach=1.0, valid=hidden)
+    assert not (part & ~top)[60:].any() and (part & can)[:60].sum() > 0.9 * can[:60].sum()
+
+
+def test_completion_floor_follows_a_render_that_is_off_everywhere():
+    """At a pose the other time's photos saw poorly, its render differs from the photo all
+    over (blotches of wrong colour). The floor rises above that: a piece of the mask on the
+    wall is not confirmed there and does not spread into the blotches, while a piece of a
+    real change grows over its object and not beyond. Another exposure of the other render
+    (auto exposure) leaves the floor low."""
+    from gdiff.compare.complete import difference, grow_pieces, noise_floor
+
+    rng = np.random.default_rng(1)
+    wall = _textured(rng)
+    yy, xx = np.mgrid[:120, :160]
+    cup = (xx - 100) ** 2 + (yy - 60) ** 2 <= 15 ** 2
+    photo = wall.copy()
+    photo[cup] = (0.95, 0.85, 0.1)
+    blotches = cv2.GaussianBlur(rng.normal(0, 1, (120, 160)).astype(np.float32), (0, 0), 4)
+    blotches *= 0.2 / blotches.std()
+    other = np.clip(wall + blotches[..., None] * (1.0, 0.8, 0.6), 0, 1).astype(np.float32)
+    d = difference(photo, other)
+    own = cv2.GaussianBlur(photo, (0, 0), 1.2)
+    floor = noise_floor(d, difference(photo, own))
+    assert floor > np.percentile(d[~cup], 80)
+    false = (np.abs(xx - 35) <= 8) & (np.abs(yy - 60) <= 8)
+    grown, n = grow_pieces((cup & (xx <= 100)) | false, d, floor, reach=1.0)
+    assert n == 1 and (grown & cup).sum() > 0.9 * cup.sum()
+    ring = cv2.dilate(cup.astype(np.uint8), np.ones((5, 5), np.uint8)) > 0
+    assert not (grown & ~ring & ~false).any()
+    low = np.percentile(difference(photo, own), 99)  # the fit's own error alone: it spreads
+    assert (grow_pieces(false, d, low, reach=1.0)[0] & ~false).sum() > false.sum()
+    dark = difference(photo, wall * 0.5)  # another exposure, nothing else
+    assert noise_floor(dark, difference(photo, own)) < 0.1 < np.median(dark[cup])
+
+
+def test_key_view_masks_are_completed_from_the_training_photos():
+    """A red box is added in front of the wall. The fit renders its lower half at t1
+    half-transparent, at the wall's depth, and the segmenter merges that half into the wall:
+    the ID comparison marks the upper half. The training photos of t1 show the box whole, so
+    the key frames of t1 mark it whole; the other poses (no photo) keep the IDs' mask, and so
+    does every pose with completion off or without photos."""
+    cams = [_wall_camera(x) for x in np.linspace(-1.0, 1.0, 9)]
+    keys = {("p1", i): i % 2 for i in range(len(cams))}
+    ids, frames, photos, box = {}, {}, {}, {}
+    for i, cam in enumerate(cams):
+        z_box = _box_scene_depth(cam, True)
+        wall_z = _box_scene_depth(cam, False)
+        box[i] = z_box < 4.5
+        upper = box[i].copy()
+        upper[60:] = False  # y >= 0: the lower half
+        z1 = np.where(upper, z_box, wall_z)
+        rgb0 = _wall_rgb(cam, wall_z)
+        rgb1 = _wall_rgb(cam, z1, upper)
+        lower = box[i] & ~upper
+        rgb1[lower] = 0.5 * rgb1[lower] + 0.5 * np.array((0.8, 0.1, 0.1), np.float32)
+        full = _wall_rgb(cam, z_box, box[i])
+        photos[("p1", i)] = srgb_to_linear(full if keys[("p1", i)] == 1 else rgb0)
+        ids1 = np.ones(wall_z.shape, np.int32)
+        ids1[upper] = 2
+        ids[("p1", "t0", i)], ids[("p1", "t1", i)] = np.ones(wall_z.shape, np.int32), ids1
+        frames[("p1", "t0", i)] = dict(depth=wall_z, camera=cam, rgb=rgb0)
+        frames[("p1", "t1", i)] = dict(depth=z1, camera=cam, rgb=rgb1)
+    o = CompareOptions(observed_min_views=1, observed_min_parallax=0.0, geometry=False,
+                       flat=False, spread_vote=0.0)
+    masks, df = compare_paths(ids, frames, o, keys=keys, photos=photos)
+    assert df.set_index("id").at[2, "changed"]
+    plain, _ = compare_paths(ids, frames, dataclasses.replace(o, complete_reach=0.0),
+                             keys=keys, photos=photos)
+    no_photos, _ = compare_paths(ids, frames, o, keys=keys)
+    for i in range(len(cams)):
+        m0, m1 = masks[("p1", i)]
+        share = (m1 & box[i]).sum() / box[i].sum()
+        ring = cv2.dilate(box[i].astype(np.uint8), np.ones((5, 5), np.uint8)) > 0
+        assert not m0.any() and not (m1 & ~ring).any()
+        assert np.array_equal(no_photos[("p1", i)][1], plain[("p1", i)][1])
+        plain_share = (plain[("p1", i)][1] & box[i]).sum() / box[i].sum()
+        assert plain_share < 0.6
+        if keys[("p1", i)] == 1:
+            assert share > 0.95, (i, share)
+        else:
+            assert np.array_equal(m1, plain[("p1", i)][1])

@@ -158,6 +158,11 @@ class CompareOptions:
         merged it into another ID: the voxels (``geometry_voxel_px``) that at least this share
         of the key frames looking at them show as pixels of changed IDs, and at least two
         (:mod:`gdiff.compare.spread`). 0: off.
+    complete_reach: at a key pose, a piece of the mask that the training photo confirms
+        (it differs there from the other time's render) grows into the pixels next to it
+        where the photo differs as much, up to this many times the piece's size away
+        (:mod:`gdiff.compare.complete`): an object cut into pieces is marked whole where the
+        partition learns from. 0: off.
     """
 
     presence_iou: float = 0.3
@@ -191,6 +196,7 @@ class CompareOptions:
     confirm_colour: float = 0.25
     surround_width: float = 0.05
     spread_vote: float = 0.3
+    complete_reach: float = 1.0
 
     def observed_step(self, height: int, width: int) -> int:
         """Pixel step of the coverage test on a ``height`` x ``width`` frame (see
@@ -219,6 +225,9 @@ class CompareOptions:
             raise ConfigError("config key 'compare.surround_width' must lie in (0, 0.5)")
         if not 0 < self.flat_max_rate <= 1:
             raise ConfigError("config key 'compare.flat_max_rate' must lie in (0, 1]")
+        if self.complete_reach < 0:
+            raise ConfigError("config key 'compare.complete_reach' must be >= 0 (0: the key "
+                              "views' masks are not completed)")
         if self.flat_photo_contrast < 0:
             raise ConfigError("config key 'compare.flat_photo_contrast' must be >= 0 (0: the "
                               "photos are not asked)")

@@ -34,6 +34,7 @@ from ..segment.base import ALPHA_MIN
 from ..track import world_points
 from .change import (HIDDEN_SHARE, CompareOptions, appearance_change, change_masks, decide,
                      pose_stats, replaced)
+from .complete import complete_key_masks
 from .coverage import DepthView, observed, surface
 from .geometry import (GeometryEvidence, flat_flags, pixel_scale, pose_flags, pose_record,
                        write_evidence)
@@ -163,7 +164,9 @@ def compare_paths(ids: dict[Key, np.ndarray], frames: dict[Key, dict] | None,
     frame at the frame's size; with them the flat evidence keeps only what the photos of the
     two times show differently (``flat_photo_contrast``, :mod:`gdiff.compare.photos`), and so
     does the ID comparison for a region whose depth is not trusted at a pose of a sparse
-    capture and that only its colours would confirm.
+    capture and that only its colours would confirm; the key frames' masks are completed where
+    the photo differs from the other time's render next to a change (``complete_reach``,
+    :mod:`gdiff.compare.complete`).
     ``alpha_min``: a pixel whose rendered opacity (the frames' ``alpha``) is below this shows no
     surface and is not judged (the segmenter's ``alpha_min``: it gave such pixels no ID). Returns
     ({(path, i): (mask_t0, mask_t1)}, changes table: id,
@@ -258,6 +261,12 @@ def compare_paths(ids: dict[Key, np.ndarray], frames: dict[Key, dict] | None,
         voxel = geo.voxel if geo is not None and geo.voxel else _key_voxel(get, keys, o)
         if voxel:
             _spread(masks, ids, get, keys, changed, voxel, o, workers)
+    if o.complete_reach > 0 and photos and keys:  # after the spread: it grows what it marked
+        n, pieces, added = complete_key_masks(masks, get, keys, photos, o.complete_reach,
+                                              alpha_min)
+        log.info("key views: %d pieces of changes grown by %d pixels over %d key frames, where "
+                 "the training photo differs from the other time's render next to them "
+                 "(compare.complete_reach = %g)", pieces, added, n, o.complete_reach)
     log.info("compared %d poses: %d of %d IDs changed (%s)", len(poses), len(changed), len(df),
              ", ".join(f"{t}: {(df['type'] == t).sum()}" for t in ("added", "removed", "moved")))
     df.attrs["evidence3d"] = evidence
@@ -518,7 +527,8 @@ def compare(instances_dir, poses_json, out_dir, options: CompareOptions | None =
     mask paths relative to the parent of ``out_dir``, i.e. results/<scene>/). ``workers``:
     processes the poses are judged on (the files do not depend on it). ``photo_root``: the
     folder the key frames' ``image`` names are relative to (:func:`gdiff.cameras.image_root`);
-    with it the training photos check the flat evidence (``compare_paths``' ``photos``).
+    with it the training photos check the flat evidence and complete the key frames' masks
+    (``compare_paths``' ``photos``).
     Pixels whose rendered opacity is below the segmenter's ``alpha_min`` (recorded in
     ``index.json``; :data:`gdiff.segment.base.ALPHA_MIN` when an older index lacks it) show no
     surface and are not judged (``compare_paths``' ``alpha_min``).
@@ -555,7 +565,8 @@ def compare(instances_dir, poses_json, out_dir, options: CompareOptions | None =
         return keyed[key] if key in keyed else read(key)
 
     photos = None
-    if photo_root is not None and (options or CompareOptions()).flat_photo_contrast > 0:
+    o = options or CompareOptions()
+    if photo_root is not None and (o.flat_photo_contrast > 0 or o.complete_reach > 0):
         photos = {}
         for (p, i), t in sorted(keys.items()):
             image, depth = meta[p][i].get("image"), keyed[(p, TIMES[t], i)].get("depth")

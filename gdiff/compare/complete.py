@@ -1,0 +1,140 @@
+"""Key-view masks completed from the training photos: what the photo of a key pose shows
+differently from the other time's render there, next to a change the IDs found.
+
+The partition learns from the key views' masks (:mod:`gdiff.partition.data`), so a changed
+object marked in part there is learnt in part. On a sparse capture the segmenter, driven by
+the rendered depth, often cuts a new object into pieces, some of which fail the evidence
+checks: the fit renders the object's middle half-transparent, or at the depth of the wall
+behind it, and the pieces cross its outline. The training photo of a key pose shows the object
+whole and sharp, and the model rendered at the *other* time at that pose shows what stood there
+then. Where they differ next to a piece of a change, the piece is grown into the difference:
+
+1. ``difference``: the per-pixel colour distance (sRGB, both blurred by ``SMOOTH_PX``) between
+   the photo and the other time's render, the render scaled per channel to the photo's median
+   colour (auto exposure, another visit's light).
+2. A floor on that distance below which a pixel does not count (:func:`noise_floor`): the
+   larger of the fit's own error (the ``OWN_QUANTILE`` of the photo's distance to its own time's
+   render: blur, texture the fit misses) and what the view's other-time render gets wrong
+   everywhere (median + ``SPREAD_MADS`` robust deviations of the difference: a pose the other
+   time's photos saw poorly renders worse all over).
+3. Per connected piece of the key view's mask (:func:`grow_pieces`): a piece grows only when
+   the photo confirms it (its median difference above the floor), into the pixels that differ
+   by at least ``PIECE_SHARE`` of the piece's own median (as different as the object is, not
+   just noticeably), opened by a disc of ``OPEN_FRACTION`` of the image diagonal (thin streaks
+   along misaligned edges and texture drop out), connected to the piece and no farther from it
+   than ``reach`` times its bounding box's longer side. Pixels where either render shows no
+   surface are never added.
+
+Only the key poses have a photo; the other poses keep the IDs' masks. The masks of time t at a
+key pose of time t (the one the partition trains on there) are completed, and the union again.
+
+Frames are sRGB float [H, W, 3] in [0, 1] at one size per pose; masks bool [H, W].
+"""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+
+from ..io import linear_to_srgb
+
+# Gaussian blur (pixels) of photo and render before they are compared: the render is smoother
+# than the photo, and its pixels are not aligned with the photo's to the pixel
+SMOOTH_PX = 1.0
+# the fit's own error: this percentile of the photo's distance to its own time's render
+OWN_QUANTILE = 99.0
+# the other time's render's error all over the view: median + this many robust deviations
+SPREAD_MADS = 3.0
+# a grown pixel differs by at least this share of the piece's median difference
+PIECE_SHARE = 0.5
+# radius of the opening of the grown region, as a fraction of the image diagonal
+OPEN_FRACTION = 0.006
+
+
+def difference(photo: np.ndarray, render: np.ndarray) -> np.ndarray:
+    """Per-pixel colour distance [H, W] between ``photo`` and ``render`` (sRGB [H, W, 3]),
+    both blurred by :data:`SMOOTH_PX`, the render scaled per channel to the photo's median."""
+    p = cv2.GaussianBlur(np.asarray(photo, np.float32), (0, 0), SMOOTH_PX)
+    r = cv2.GaussianBlur(np.asarray(render, np.float32), (0, 0), SMOOTH_PX)
+    gain = np.median(p.reshape(-1, 3), 0) / np.maximum(np.median(r.reshape(-1, 3), 0), 1e-3)
+    return np.linalg.norm(p - r * gain, axis=-1)
+
+
+def noise_floor(other: np.ndarray, own: np.ndarray) -> float:
+    """The distance below which a pixel of ``other`` (photo vs the other time's render, [H, W])
+    does not count: the larger of the fit's own error (``own``: photo vs its own time's render)
+    and the other render's error all over the view (module docstring, step 2)."""
+    med = float(np.median(other))
+    mad = 1.4826 * float(np.median(np.abs(other - med)))
+    return max(float(np.percentile(own, OWN_QUANTILE)), med + SPREAD_MADS * mad)
+
+
+def grow_pieces(mask: np.ndarray, other: np.ndarray, floor: float, reach: float,
+                valid: np.ndarray | None = None) -> tuple[np.ndarray, int]:
+    """``mask`` [H, W] bool with each photo-confirmed piece grown into the differing pixels
+    next to it (module docstring, step 3); ``other`` [H, W] the photo's distance to the other
+    time's render, ``floor`` from :func:`noise_floor`, ``valid`` [H, W] bool the pixels that
+    may be added (None: all). Returns (grown mask, number of pieces grown)."""
+    mask = np.asarray(mask, bool)
+    out = mask.copy()
+    n, labels, stats, _ = cv2.connectedComponentsWithStats(mask.astype(np.uint8), connectivity=8)
+    if n <= 1 or reach <= 0:
+        return out, 0
+    h, w = mask.shape
+    rad = max(1, int(round(OPEN_FRACTION * np.hypot(h, w))))
+    disc = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * rad + 1, 2 * rad + 1))
+    grown = 0
+    for j in range(1, n):
+        piece = labels == j
+        level = float(np.median(other[piece]))
+        if level <= floor:
+            continue  # the photo does not confirm this piece
+        diff = cv2.morphologyEx((other > max(floor, PIECE_SHARE * level)).astype(np.uint8),
+                                cv2.MORPH_OPEN, disc) > 0
+        limit = reach * max(stats[j, cv2.CC_STAT_WIDTH], stats[j, cv2.CC_STAT_HEIGHT])
+        diff &= cv2.distanceTransform((~piece).astype(np.uint8), cv2.DIST_L2, 5) <= limit
+        if valid is not None:
+            diff &= valid
+        _, near = cv2.connectedComponents((diff | piece).astype(np.uint8), connectivity=8)
+        touching = np.unique(near[piece])
+        add = np.isin(near, touching[touching > 0]) & diff & ~out
+        if add.any():
+            out |= add
+            grown += 1
+    return out, grown
+
+
+def complete_key_masks(masks: dict, get, keys: dict[tuple[str, int], int], photos: dict,
+                       reach: float, alpha_min: float) -> tuple[int, int, int]:
+    """Complete in place the masks of every key frame that has a photo (module docstring).
+
+    ``masks[(path, i)] = (mask_t0, mask_t1)``; ``get((path, "t0" | "t1", i))`` the rendered
+    frame dict (``rgb`` sRGB, optional ``alpha``); ``keys[(path, i)]`` the key frame's time;
+    ``photos[(path, i)]`` its photo, linear RGB float32 at the frame's size. Returns (key
+    frames completed, pieces grown, pixels added)."""
+    done = pieces = added = 0
+    for (p, i), t in sorted(keys.items()):
+        if (p, i) not in masks or (p, i) not in photos:
+            continue
+        t = int(t)
+        own, other = get((p, f"t{t}", i)), get((p, f"t{1 - t}", i))
+        if own.get("rgb") is None or other.get("rgb") is None:
+            continue
+        photo = linear_to_srgb(np.asarray(photos[(p, i)], np.float32))
+        if photo.shape != other["rgb"].shape:
+            continue
+        d_other = difference(photo, other["rgb"])
+        floor = noise_floor(d_other, difference(photo, own["rgb"]))
+        valid = None
+        for f in (own, other):
+            if f.get("alpha") is not None:
+                a = np.asarray(f["alpha"]) >= alpha_min
+                valid = a if valid is None else valid & a
+        pair = list(masks[(p, i)])
+        before = int(pair[t].sum())
+        pair[t], n = grow_pieces(pair[t], d_other, floor, reach, valid)
+        masks[(p, i)] = tuple(pair)
+        done += 1
+        pieces += n
+        added += int(pair[t].sum()) - before
+    return done, pieces, added

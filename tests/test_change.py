@@ -1720,18 +1720,19 @@ def test_completion_floor_follows_a_render_that_is_off_everywhere():
     assert noise_floor(dark, difference(photo, own)) < 0.1 < np.median(dark[cup])
 
 
-def test_key_view_masks_are_completed_from_the_training_photos():
-    """A red box is added in front of the wall. The fit renders its lower half at t1
-    half-transparent, at the wall's depth, and the segmenter merges that half into the wall:
-    the ID comparison marks the upper half. The training photos of t1 show the box whole, so
-    the key frames of t1 mark it whole; the other poses (no photo) keep the IDs' mask, and so
-    does every pose with completion off or without photos."""
+def _box_added_in_pieces(light_bars: bool = False):
+    """Nine poses before the wall; a red box is added at t1. The fit renders its lower half
+    half-transparent at the wall's depth, and the segmenter merges that half into the wall: the
+    ID comparison sees the upper half. The key frames (odd poses: t1, even: t0) have photos:
+    the box whole at t1. ``light_bars``: at t1 the shadow bars of blinds fall across the scene
+    (a change of light), in the renders and the photos. Returns (ids, frames, keys, photos,
+    box masks per pose)."""
     cams = [_wall_camera(x) for x in np.linspace(-1.0, 1.0, 9)]
     keys = {("p1", i): i % 2 for i in range(len(cams))}
     ids, frames, photos, box = {}, {}, {}, {}
     for i, cam in enumerate(cams):
         z_box = _box_scene_depth(cam, True)
-        wall_z = _box_scene_depth(cam, False)
+        wall_z, x, y, _ = _wall_poster(cam)
         box[i] = z_box < 4.5
         upper = box[i].copy()
         upper[60:] = False  # y >= 0: the lower half
@@ -1741,12 +1742,24 @@ def test_key_view_masks_are_completed_from_the_training_photos():
         lower = box[i] & ~upper
         rgb1[lower] = 0.5 * rgb1[lower] + 0.5 * np.array((0.8, 0.1, 0.1), np.float32)
         full = _wall_rgb(cam, z_box, box[i])
+        if light_bars:
+            bars = (np.sin(6 * (x + y)) > 0) & (np.abs(y - 0.8) <= 0.6)  # below the box's top
+            shade = np.where(bars, 0.35, 1.0).astype(np.float32)[..., None]
+            rgb1, full = rgb1 * shade, full * shade
         photos[("p1", i)] = srgb_to_linear(full if keys[("p1", i)] == 1 else rgb0)
         ids1 = np.ones(wall_z.shape, np.int32)
         ids1[upper] = 2
         ids[("p1", "t0", i)], ids[("p1", "t1", i)] = np.ones(wall_z.shape, np.int32), ids1
         frames[("p1", "t0", i)] = dict(depth=wall_z, camera=cam, rgb=rgb0)
         frames[("p1", "t1", i)] = dict(depth=z1, camera=cam, rgb=rgb1)
+    return ids, frames, keys, photos, box
+
+
+def test_key_view_masks_are_completed_from_the_training_photos():
+    """The box added in pieces (:func:`_box_added_in_pieces`): the key frames of t1 mark it
+    whole, from their photos; the other poses (no photo) keep the IDs' mask, and so does every
+    pose with completion off or without photos."""
+    ids, frames, keys, photos, box = _box_added_in_pieces()
     o = CompareOptions(observed_min_views=1, observed_min_parallax=0.0, geometry=False,
                        flat=False, spread_vote=0.0)
     masks, df = compare_paths(ids, frames, o, keys=keys, photos=photos)
@@ -1754,7 +1767,7 @@ def test_key_view_masks_are_completed_from_the_training_photos():
     plain, _ = compare_paths(ids, frames, dataclasses.replace(o, complete_reach=0.0),
                              keys=keys, photos=photos)
     no_photos, _ = compare_paths(ids, frames, o, keys=keys)
-    for i in range(len(cams)):
+    for i in range(len(box)):
         m0, m1 = masks[("p1", i)]
         share = (m1 & box[i]).sum() / box[i].sum()
         ring = cv2.dilate(box[i].astype(np.uint8), np.ones((5, 5), np.uint8)) > 0
@@ -1766,3 +1779,18 @@ def test_key_view_masks_are_completed_from_the_training_photos():
             assert share > 0.95, (i, share)
         else:
             assert np.array_equal(m1, plain[("p1", i)][1])
+
+
+def test_key_view_masks_are_not_completed_under_a_change_of_light():
+    """The same box, with the shadow bars of blinds across the scene at t1: the photos of t1
+    differ from the t0 renders wherever the bars fall, so they no longer outline the box. The
+    flat evidence takes it for a change of light, and the key frames keep the IDs' masks (grown,
+    the box's pieces would spread into the bars beside it)."""
+    ids, frames, keys, photos, box = _box_added_in_pieces(light_bars=True)
+    o = CompareOptions(observed_min_views=1, observed_min_parallax=0.0, spread_vote=0.0)
+    masks, df = compare_paths(ids, frames, o, keys=keys, photos=photos)
+    plain, _ = compare_paths(ids, frames, dataclasses.replace(o, complete_reach=0.0),
+                             keys=keys, photos=photos)
+    assert df.set_index("id").at[2, "changed"]
+    for k in masks:
+        assert all(np.array_equal(a, b) for a, b in zip(masks[k], plain[k]))

@@ -261,7 +261,10 @@ def compare_paths(ids: dict[Key, np.ndarray], frames: dict[Key, dict] | None,
         voxel = geo.voxel if geo is not None and geo.voxel else _key_voxel(get, keys, o)
         if voxel:
             _spread(masks, ids, get, keys, changed, voxel, o, workers)
-    if o.complete_reach > 0 and photos and keys:  # after the spread: it grows what it marked
+    if o.complete_reach > 0 and photos and keys and light_changed:
+        log.info("key views: not completed from the photos: the light changed, and a photo "
+                 "differs from the other time's render wherever it did")
+    elif o.complete_reach > 0 and photos and keys:  # after the spread: it grows what it marked
         n, pieces, added = complete_key_masks(masks, get, keys, photos, o.complete_reach,
                                               alpha_min)
         log.info("key views: %d pieces of changes grown by %d pixels over %d key frames, where "

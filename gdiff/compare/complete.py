@@ -39,6 +39,7 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
+from ..frames import TIMES
 from ..io import linear_to_srgb
 
 # Gaussian blur (pixels) of photo and render before they are compared: the render is smoother
@@ -120,7 +121,7 @@ def complete_key_masks(masks: dict, get, keys: dict[tuple[str, int], int], photo
         if (p, i) not in masks or (p, i) not in photos:
             continue
         t = int(t)
-        own, other = get((p, f"t{t}", i)), get((p, f"t{1 - t}", i))
+        own, other = get((p, TIMES[t], i)), get((p, TIMES[1 - t], i))
         if own.get("rgb") is None or other.get("rgb") is None:
             continue
         photo = linear_to_srgb(np.asarray(photos[(p, i)], np.float32))

@@ -23,7 +23,11 @@ then. Where they differ next to a piece of a change, the piece is grown into the
    just noticeably), opened by a disc of ``OPEN_FRACTION`` of the image diagonal (thin streaks
    along misaligned edges and texture drop out), connected to the piece and no farther from it
    than ``reach`` times its bounding box's longer side. Pixels where either render shows no
-   surface are never added.
+   surface are never added, nor those whose depth is observed at both times (enough photos of
+   each time agree on it, :mod:`gdiff.compare.coverage`): there the IDs' masks, cut along
+   that depth, follow the objects already, and what the photo shows differently beside them
+   is a shadow the object casts or a surface the other time's object covers, not the object.
+   So the step acts where a sparse capture leaves the depth untrusted.
 
 Not under a change of light (the flat evidence's verdict, :mod:`gdiff.compare.geometry`): a
 photo then differs from the other time's render wherever the light did, shadows beside an
@@ -73,6 +77,12 @@ def noise_floor(other: np.ndarray, own: np.ndarray) -> float:
     return max(float(np.percentile(own, OWN_QUANTILE)), med + SPREAD_MADS * mad)
 
 
+def _disc(shape: tuple[int, ...]) -> np.ndarray:
+    """The opening's disc for an image of ``shape`` (:data:`OPEN_FRACTION` of its diagonal)."""
+    rad = max(1, int(round(OPEN_FRACTION * np.hypot(shape[0], shape[1]))))
+    return cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * rad + 1, 2 * rad + 1))
+
+
 def grow_pieces(mask: np.ndarray, other: np.ndarray, floor: float, reach: float,
                 valid: np.ndarray | None = None) -> tuple[np.ndarray, int]:
     """``mask`` [H, W] bool with each photo-confirmed piece grown into the differing pixels
@@ -84,9 +94,7 @@ def grow_pieces(mask: np.ndarray, other: np.ndarray, floor: float, reach: float,
     n, labels, stats, _ = cv2.connectedComponentsWithStats(mask.astype(np.uint8), connectivity=8)
     if n <= 1 or reach <= 0:
         return out, 0
-    h, w = mask.shape
-    rad = max(1, int(round(OPEN_FRACTION * np.hypot(h, w))))
-    disc = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * rad + 1, 2 * rad + 1))
+    disc = _disc(mask.shape)
     grown = 0
     for j in range(1, n):
         piece = labels == j
@@ -109,13 +117,16 @@ def grow_pieces(mask: np.ndarray, other: np.ndarray, floor: float, reach: float,
 
 
 def complete_key_masks(masks: dict, get, keys: dict[tuple[str, int], int], photos: dict,
-                       reach: float, alpha_min: float) -> tuple[int, int, int]:
+                       reach: float, alpha_min: float, known: dict | None = None
+                       ) -> tuple[int, int, int]:
     """Complete in place the masks of every key frame that has a photo (module docstring).
 
     ``masks[(path, i)] = (mask_t0, mask_t1)``; ``get((path, "t0" | "t1", i))`` the rendered
     frame dict (``rgb`` sRGB, optional ``alpha``); ``keys[(path, i)]`` the key frame's time;
-    ``photos[(path, i)]`` its photo, linear RGB float32 at the frame's size. Returns (key
-    frames completed, pieces grown, pixels added)."""
+    ``photos[(path, i)]`` its photo, linear RGB float32 at the frame's size; ``known[(path,
+    i)]`` (optional) bool [H, W], the pixels whose depth is observed at both times
+    (:func:`gdiff.compare.coverage.observed`): never added. Returns (key frames completed,
+    pieces grown, pixels added)."""
     done = pieces = added = 0
     for (p, i), t in sorted(keys.items()):
         if (p, i) not in masks or (p, i) not in photos:
@@ -129,11 +140,16 @@ def complete_key_masks(masks: dict, get, keys: dict[tuple[str, int], int], photo
             continue
         d_other = difference(photo, other["rgb"])
         floor = noise_floor(d_other, difference(photo, own["rgb"]))
-        valid = None
+        valid = np.ones(d_other.shape, bool)
         for f in (own, other):
             if f.get("alpha") is not None:
-                a = np.asarray(f["alpha"]) >= alpha_min
-                valid = a if valid is None else valid & a
+                valid &= np.asarray(f["alpha"]) >= alpha_min
+        if known is not None and (p, i) in known:  # there the IDs' masks follow the depth;
+            # opened like the difference: a thin line of agreeing depth along an outline
+            # (where the two depths cross) is no trusted surface
+            trusted = cv2.morphologyEx(np.asarray(known[(p, i)], np.uint8), cv2.MORPH_OPEN,
+                                       _disc(d_other.shape)) > 0
+            valid &= ~trusted
         pair = list(masks[(p, i)])
         before = int(pair[t].sum())
         pair[t], n = grow_pieces(pair[t], d_other, floor, reach, valid)

@@ -80,9 +80,11 @@ class _JudgePose:
     a region only seen (:func:`gdiff.compare.change.pose_stats`)."""
 
     def __init__(self, ids, get, o: CompareOptions, views, geo_stride: int | None,
-                 flat_stride: int | None, alpha_min: float, key_photos=None):
+                 flat_stride: int | None, alpha_min: float, key_photos=None,
+                 key_poses=None):
         self.ids, self.get, self.o, self.views = ids, get, o, views
         self.key_photos = key_photos
+        self.key_poses = key_poses  # set of (path, i) whose observed depth is returned
         self.geo_stride, self.flat_stride = geo_stride, flat_stride
         self.alpha_min = alpha_min
 
@@ -142,7 +144,11 @@ class _JudgePose:
                 f_rec = pose_record(z0, z1, cam, *flat_flags(z0, z1, o.depth_change_rel,
                                                              o.evidence_open, known, differ),
                                     points=tuple(pts), stride=self.flat_stride)
-        return stats, judged, g_rec, f_rec
+        known = None  # at the key poses: the depth of both times observed (completion)
+        if self.key_poses is not None and pose in self.key_poses \
+                and obs[0] is not None and obs[1] is not None:
+            known = obs[0] & obs[1]
+        return stats, judged, g_rec, f_rec, known
 
 
 def compare_paths(ids: dict[Key, np.ndarray], frames: dict[Key, dict] | None,
@@ -188,11 +194,15 @@ def compare_paths(ids: dict[Key, np.ndarray], frames: dict[Key, dict] | None,
     key_photos = _key_photos(get, keys, photos) if photos and keys else None
     judge = _JudgePose(ids, get, o, views, geo.stride if geo is not None else None,
                        flat.stride if flat is not None else None, alpha_min,
-                       key_photos=key_photos if o.flat_photo_contrast > 0 else None)
+                       key_photos=key_photos if o.flat_photo_contrast > 0 else None,
+                       key_poses=set(keys) if keys and photos and o.complete_reach > 0 else None)
     results = ordered_map(judge, poses, workers)
-    for pose, (st, jd, g_rec, f_rec) in zip(poses, progress(results, desc="compare",
-                                                           total=len(poses))):
+    known = {}  # key pose -> bool [H, W], the depth of both times observed there
+    for pose, (st, jd, g_rec, f_rec, kn) in zip(poses, progress(results, desc="compare",
+                                                               total=len(poses))):
         stats.append(st)
+        if kn is not None:
+            known[pose] = kn
         if jd is not None:
             judged += jd
         if g_rec is not None:
@@ -266,7 +276,7 @@ def compare_paths(ids: dict[Key, np.ndarray], frames: dict[Key, dict] | None,
                  "differs from the other time's render wherever it did")
     elif o.complete_reach > 0 and photos and keys:  # after the spread: it grows what it marked
         n, pieces, added = complete_key_masks(masks, get, keys, photos, o.complete_reach,
-                                              alpha_min)
+                                              alpha_min, known)
         log.info("key views: %d pieces of changes grown by %d pixels over %d key frames, where "
                  "the training photo differs from the other time's render next to them "
                  "(compare.complete_reach = %g)", pieces, added, n, o.complete_reach)

@@ -162,7 +162,8 @@ class CompareOptions:
         (it differs there from the other time's render) grows into the pixels next to it
         where the photo differs as much, up to this many times the piece's size away
         (:mod:`gdiff.compare.complete`): an object cut into pieces is marked whole where the
-        partition learns from. 0: off.
+        partition learns from. Only where the depth of both times is not observed, and not
+        under a change of light. 0: off.
     """
 
     presence_iou: float = 0.3

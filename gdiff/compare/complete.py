@@ -31,9 +31,10 @@ then. Where they differ next to a piece of a change, the piece is grown into the
 
 Not under a change of light (the flat evidence's verdict, :mod:`gdiff.compare.geometry`): a
 photo then differs from the other time's render wherever the light did, shadows beside an
-object among them, and the difference no longer outlines objects (the stage skips this step and
-says so in the log). Only the key poses have a photo; the other poses keep the IDs' masks. The masks of time t at a
-key pose of time t (the one the partition trains on there) are completed, and the union again.
+object among them, and the difference no longer outlines objects (the stage skips this step
+and says so in the log). Only the key poses have a photo; the other poses keep the IDs' masks.
+At a key pose of time t the mask of time t (the one the partition trains on there) is
+completed; the union written by the stage follows it.
 
 Frames are sRGB float [H, W, 3] in [0, 1] at one size per pose; masks bool [H, W].
 """

@@ -134,8 +134,10 @@ class _JudgePose:
             appearance=differ, points=tuple(pts) if have_depth and need else None,
             photos_differ=photo_check))
         g_rec = f_rec = None
+        # the depth of both times observed: the evidence's pixels, and at the key poses the
+        # pixels the completion leaves alone (returned for those)
+        known = obs[0] & obs[1] if obs[0] is not None and obs[1] is not None else None
         if evidence:
-            known = obs[0] & obs[1] if obs[0] is not None and obs[1] is not None else None
             if self.geo_stride is not None:
                 g_rec = pose_record(z0, z1, cam, *pose_flags(z0, z1, o.depth_change_rel,
                                                              o.evidence_open, known, differ),
@@ -144,11 +146,8 @@ class _JudgePose:
                 f_rec = pose_record(z0, z1, cam, *flat_flags(z0, z1, o.depth_change_rel,
                                                              o.evidence_open, known, differ),
                                     points=tuple(pts), stride=self.flat_stride)
-        known = None  # at the key poses: the depth of both times observed (completion)
-        if self.key_poses is not None and pose in self.key_poses \
-                and obs[0] is not None and obs[1] is not None:
-            known = obs[0] & obs[1]
-        return stats, judged, g_rec, f_rec, known
+        key = self.key_poses is not None and pose in self.key_poses
+        return stats, judged, g_rec, f_rec, known if key else None
 
 
 def compare_paths(ids: dict[Key, np.ndarray], frames: dict[Key, dict] | None,
@@ -271,15 +270,16 @@ def compare_paths(ids: dict[Key, np.ndarray], frames: dict[Key, dict] | None,
         voxel = geo.voxel if geo is not None and geo.voxel else _key_voxel(get, keys, o)
         if voxel:
             _spread(masks, ids, get, keys, changed, voxel, o, workers)
-    if o.complete_reach > 0 and photos and keys and light_changed:
-        log.info("key views: not completed from the photos: the light changed, and a photo "
-                 "differs from the other time's render wherever it did")
-    elif o.complete_reach > 0 and photos and keys:  # after the spread: it grows what it marked
-        n, pieces, added = complete_key_masks(masks, get, keys, photos, o.complete_reach,
-                                              alpha_min, known)
-        log.info("key views: %d pieces of changes grown by %d pixels over %d key frames, where "
-                 "the training photo differs from the other time's render next to them "
-                 "(compare.complete_reach = %g)", pieces, added, n, o.complete_reach)
+    if o.complete_reach > 0 and photos and keys:  # after the spread: it grows what it marked
+        if light_changed:
+            log.info("key views: not completed from the photos: the light changed, and a photo "
+                     "differs from the other time's render wherever it did")
+        else:
+            n, pieces, added = complete_key_masks(masks, get, keys, photos, o.complete_reach,
+                                                  alpha_min, known)
+            log.info("key views: %d pieces of changes grown by %d pixels over %d key frames, "
+                     "where the training photo differs from the other time's render next to "
+                     "them (compare.complete_reach = %g)", pieces, added, n, o.complete_reach)
     log.info("compared %d poses: %d of %d IDs changed (%s)", len(poses), len(changed), len(df),
              ", ".join(f"{t}: {(df['type'] == t).sum()}" for t in ("added", "removed", "moved")))
     df.attrs["evidence3d"] = evidence

@@ -96,23 +96,30 @@ def grow_pieces(mask: np.ndarray, other: np.ndarray, floor: float, reach: float,
     if n <= 1 or reach <= 0:
         return out, 0
     disc = _disc(mask.shape)
+    rad = disc.shape[0] // 2
+    h, w = mask.shape
     grown = 0
     for j in range(1, n):
-        piece = labels == j
-        level = float(np.median(other[piece]))
+        x, y, bw, bh = (int(v) for v in stats[j, :4])
+        limit = reach * max(bw, bh)
+        # each piece works in a window: its reach, plus the opening's span (2 radii) so that
+        # the opening inside the reach is the whole image's
+        m = int(np.ceil(limit)) + 2 * rad + 2
+        win = (slice(max(0, y - m), min(h, y + bh + m)), slice(max(0, x - m), min(w, x + bw + m)))
+        piece, o = labels[win] == j, other[win]
+        level = float(np.median(o[piece]))
         if level <= floor:
             continue  # the photo does not confirm this piece
-        diff = cv2.morphologyEx((other > max(floor, PIECE_SHARE * level)).astype(np.uint8),
+        diff = cv2.morphologyEx((o > max(floor, PIECE_SHARE * level)).astype(np.uint8),
                                 cv2.MORPH_OPEN, disc) > 0
-        limit = reach * max(stats[j, cv2.CC_STAT_WIDTH], stats[j, cv2.CC_STAT_HEIGHT])
         diff &= cv2.distanceTransform((~piece).astype(np.uint8), cv2.DIST_L2, 5) <= limit
         if valid is not None:
-            diff &= valid
+            diff &= valid[win]
         _, near = cv2.connectedComponents((diff | piece).astype(np.uint8), connectivity=8)
         touching = np.unique(near[piece])
-        add = np.isin(near, touching[touching > 0]) & diff & ~out
+        add = np.isin(near, touching[touching > 0]) & diff & ~out[win]
         if add.any():
-            out |= add
+            out[win] |= add
             grown += 1
     return out, grown
 

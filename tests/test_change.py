@@ -1680,6 +1680,40 @@ def test_completion_grows_a_confirmed_piece_into_what_the_photo_shows():
     assert not (part & ~top)[60:].any() and (part & can)[:60].sum() > 0.9 * can[:60].sum()
 
 
+def test_completion_joins_the_fragments_of_an_object_and_fills_its_print():
+    """A red box with a printed label (dots of the fabric's colours) is added on patterned
+    fabric; the segmenter left only specks of it in the mask, a few pixels apart. Grown, the
+    specks act as one piece, whose size sets the reach: the box is covered whole, its print
+    too, and barely more. Each speck alone (the others removed) reaches only its own size."""
+    from gdiff.compare.complete import _disc, difference, grow_pieces, noise_floor
+
+    rng = np.random.default_rng(2)
+    h, w = 480, 640
+    fabric = _textured(rng, h, w)
+    yy, xx = np.mgrid[:h, :w]
+    box = (np.abs(xx - 320) <= 20) & (yy >= 200) & (yy <= 260)
+    photo = fabric.copy()
+    photo[box] = (0.7, 0.1, 0.12)
+    other = np.roll(fabric, 1, axis=1)  # the other time: fabric only, a pixel off
+    dots = box & (yy % 8 < 3) & (xx % 8 < 3)  # the print: the other render's colours there
+    photo[dots] = other[dots]
+    d_other = difference(photo, other)
+    floor = noise_floor(d_other, difference(photo, cv2.GaussianBlur(photo, (0, 0), 1.2)))
+    gap = _disc((h, w)).shape[0] // 2  # closer than the disc's span: one object's fragments
+    specks = np.zeros_like(box)
+    for y in range(218, 246, gap + 3):
+        specks[y:y + 3, 319:322] = True
+    assert (specks & box).sum() == specks.sum() and specks.sum() >= 3 * 9
+    grown, n = grow_pieces(specks, d_other, floor, reach=1.0)
+    assert n == 1
+    assert (grown & box).sum() > 0.95 * box.sum()  # the print's dots filled
+    rim = cv2.dilate(box.astype(np.uint8), np.ones((5, 5), np.uint8)) > 0
+    assert not (grown & ~rim).any()
+    one = specks & (yy < 225)
+    alone, _ = grow_pieces(one, d_other, floor, reach=1.0)
+    assert (alone & box).sum() < 0.2 * box.sum()
+
+
 def test_completion_floor_follows_a_render_that_is_off_everywhere():
     """At a pose the other time's photos saw poorly, its render differs from the photo all
     over (blotches of wrong colour). The floor rises above that: a piece of the mask on the

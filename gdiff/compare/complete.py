@@ -17,16 +17,19 @@ then. Where they differ next to a piece of a change, the piece is grown into the
    render: blur, texture the fit misses) and what the view's other-time render gets wrong
    everywhere (median + ``SPREAD_MADS`` robust deviations of the difference: a pose the other
    time's photos saw poorly renders worse all over).
-3. Per connected piece of the key view's mask (:func:`grow_pieces`): a piece grows only when
-   the photo confirms it (its median difference above the floor), into the pixels that differ
-   by at least ``PIECE_SHARE`` of the piece's own median (as different as the object is, not
-   just noticeably), opened by a disc of ``OPEN_FRACTION`` of the image diagonal (thin streaks
-   along misaligned edges and texture drop out), connected to the piece and no farther from it
-   than ``reach`` times its bounding box's longer side. Pixels where either render shows no
-   surface are never added, nor those whose depth is observed at both times (enough photos of
-   each time agree on it, :mod:`gdiff.compare.coverage`): there the IDs' masks, cut along
-   that depth, follow the objects already, and what the photo shows differently beside them
-   is a shadow the object casts or a surface the other time's object covers, not the object.
+3. Per piece of the key view's mask (:func:`grow_pieces`; fragments closer than the span of
+   a disc of ``DISC_FRACTION`` of the image diagonal are one piece: the segmenter cut one object
+   into them): a piece grows only when the photo confirms it (its median difference above the
+   floor), into the pixels around which most of the disc (``MAJORITY``) differs by at least
+   ``PIECE_SHARE`` of the piece's own median (as different as the object is, not just
+   noticeably; the majority drops thin streaks along misaligned edges and texture, and fills
+   the holes an object's print or highlights leave), connected to the piece and no farther
+   from it than ``reach`` times its bounding box's longer side. Pixels where either render
+   shows no surface are never added, nor those whose depth is observed at both times (enough
+   photos of each time agree on it, :mod:`gdiff.compare.coverage`): there the IDs' masks, cut
+   along that depth, follow the objects already, and what the photo shows differently beside
+   them is a shadow the object casts or a surface the other time's object covers, not the
+   object.
    So the step acts where a sparse capture leaves the depth untrusted.
 
 Not under a change of light (the flat evidence's verdict, :mod:`gdiff.compare.geometry`): a
@@ -56,8 +59,11 @@ OWN_QUANTILE = 99.0
 SPREAD_MADS = 3.0
 # a grown pixel differs by at least this share of the piece's median difference
 PIECE_SHARE = 0.5
-# radius of the opening of the grown region, as a fraction of the image diagonal
-OPEN_FRACTION = 0.006
+# radius of the disc that joins fragments, filters the grown region and opens the observed
+# depth, as a fraction of the image diagonal
+DISC_FRACTION = 0.006
+# a pixel is grown into when at least this share of the disc around it differs
+MAJORITY = 0.5
 
 
 def difference(photo: np.ndarray, render: np.ndarray) -> np.ndarray:
@@ -79,8 +85,8 @@ def noise_floor(other: np.ndarray, own: np.ndarray) -> float:
 
 
 def _disc(shape: tuple[int, ...]) -> np.ndarray:
-    """The opening's disc for an image of ``shape`` (:data:`OPEN_FRACTION` of its diagonal)."""
-    rad = max(1, int(round(OPEN_FRACTION * np.hypot(shape[0], shape[1]))))
+    """The disc for an image of ``shape`` (radius :data:`DISC_FRACTION` of its diagonal)."""
+    rad = max(1, int(round(DISC_FRACTION * np.hypot(shape[0], shape[1]))))
     return cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * rad + 1, 2 * rad + 1))
 
 
@@ -92,26 +98,33 @@ def grow_pieces(mask: np.ndarray, other: np.ndarray, floor: float, reach: float,
     may be added (None: all). Returns (grown mask, number of pieces grown)."""
     mask = np.asarray(mask, bool)
     out = mask.copy()
-    n, labels, stats, _ = cv2.connectedComponentsWithStats(mask.astype(np.uint8), connectivity=8)
-    if n <= 1 or reach <= 0:
+    if not mask.any() or reach <= 0:
         return out, 0
     disc = _disc(mask.shape)
     rad = disc.shape[0] // 2
+    share = disc.astype(np.float32) / float(disc.sum())  # a pixel's share of the disc
+    # fragments of one object closer than the disc's span are one piece
+    n, labels, stats, _ = cv2.connectedComponentsWithStats(
+        cv2.dilate(mask.astype(np.uint8), disc), connectivity=8)
+    labels[~mask] = 0
     h, w = mask.shape
     grown = 0
     for j in range(1, n):
-        x, y, bw, bh = (int(v) for v in stats[j, :4])
+        x0, y0, x1, y1 = stats[j, 0], stats[j, 1], stats[j, 0] + stats[j, 2], stats[j, 1] + stats[j, 3]
+        ys, xs = np.nonzero(labels[y0:y1, x0:x1] == j)  # the piece's own bounding box
+        x, y = x0 + int(xs.min()), y0 + int(ys.min())
+        bw, bh = int(xs.max() - xs.min()) + 1, int(ys.max() - ys.min()) + 1
         limit = reach * max(bw, bh)
-        # each piece works in a window: its reach, plus the opening's span (2 radii) so that
-        # the opening inside the reach is the whole image's
+        # each piece works in a window: its reach, plus the disc's span (2 radii) so that the
+        # filter inside the reach sees what it sees in the whole image
         m = int(np.ceil(limit)) + 2 * rad + 2
         win = (slice(max(0, y - m), min(h, y + bh + m)), slice(max(0, x - m), min(w, x + bw + m)))
         piece, o = labels[win] == j, other[win]
         level = float(np.median(o[piece]))
         if level <= floor:
             continue  # the photo does not confirm this piece
-        diff = cv2.morphologyEx((o > max(floor, PIECE_SHARE * level)).astype(np.uint8),
-                                cv2.MORPH_OPEN, disc) > 0
+        above = (o > max(floor, PIECE_SHARE * level)).astype(np.float32)
+        diff = cv2.filter2D(above, -1, share, borderType=cv2.BORDER_REFLECT) >= MAJORITY
         diff &= cv2.distanceTransform((~piece).astype(np.uint8), cv2.DIST_L2, 5) <= limit
         if valid is not None:
             diff &= valid[win]

@@ -11,4 +11,14 @@ Conventions used everywhere in the package (see docs/design.md):
   EXR exports convert to linear.
 """
 
+import os as _os
+
+# Intel MKL (torch's CPU BLAS) splits a matrix product's sums over its threads in a way that
+# depends on the CPU and the thread count, so the deformation MLP's weight gradients (sums over
+# every Gaussian) came out differently on one thread and on two. MKL's strict reproducibility
+# mode (``MKL_CBWR=AUTO,STRICT``) sums ?gemm in an order no thread count changes. MKL reads the
+# variable at its first call, so this takes effect when gdiff is imported before any matrix
+# product has run (the workflow's scripts, the CLI and the tests do); a value the user set wins.
+_os.environ.setdefault("MKL_CBWR", "AUTO,STRICT")
+
 __version__ = "0.1.0"

@@ -487,7 +487,9 @@ def test_time_change_weight_shares_gaussians_between_the_times(scene, fitted, tm
 def test_short_fit_does_not_depend_on_the_thread_count(scene, tmp_path, torch_threads):
     """A short fit (densification included) gives the same model on one thread and on two:
     every Gaussian parameter and the deformation field bitwise equal, so the compiled kernels
-    (rasterizer, projection, colours, HexPlane) sum in an order no thread count changes. A
+    (rasterizer, projection, colours, HexPlane) sum in an order no thread count changes, and so
+    do the deformation MLP's matrix products (MKL's strict mode, which importing gdiff sets;
+    without it they parted at the first deformation step on an AVX-512 CPU). A
     full-length fit of a real capture still parts by rounding later on (README, "Repeatable
     results")."""
     opts = small_options(coarse_iters=25, fine_iters=25, densify_from=10, densify_every=10,

@@ -206,7 +206,7 @@ def test_stage_files(demo_paths, tmp_path, monkeypatch):
     assert set(ch["type"]) <= {"added", "removed", "moved"} and len(ch) == summary["changed"]
     cand = pd.read_csv(res / "change" / "candidates.csv")
     assert list(cand.columns) == ["instance", "ids", "types", "n_t0", "n_t1", "n_confirmed",
-                                  "area", "x", "y", "z", "size", "support", "colour", "verdict"]
+                                  "area", "x", "y", "z", "size", "support", "colour", "photo", "verdict"]
     assert {"x", "y", "z", "size"} <= set(ch.columns)
     kept = cand[cand["verdict"] != "dropped"]
     assert set(kept["instance"]) == set(ch["instance"])
@@ -1833,3 +1833,56 @@ def test_key_view_masks_are_not_completed_under_a_change_of_light():
     assert df.set_index("id").at[2, "changed"]
     for k in masks:
         assert all(np.array_equal(a, b) for a, b in zip(masks[k], plain[k]))
+
+
+def test_photo_confirms_an_object_that_neither_depth_nor_colour_can():
+    """A sparse capture: a dark grey mug is put on a light grey table. The fit drew it where
+    the table is (no 3D evidence) and its chromaticity relative to the table is the table's
+    (no colour evidence). The training photos of the after visit show it where the before
+    render shows table: it is kept by the photos. A piece of table the segmenter cut
+    differently at t1 looks in those photos as the before render draws it: dropped. Not kept
+    so when seen at one pose only, nor when the light changed, nor with confirm_photo 0."""
+    from gdiff.compare.complete import key_differences
+
+    rng = np.random.default_rng(0)
+    h, w = 120, 160
+    table = np.full((h, w, 3), 0.7, np.float32) + rng.normal(0, 0.02, (h, w, 1)).astype(np.float32)
+    mug = np.zeros((h, w), bool)
+    mug[40:80, 60:90] = True
+    piece = np.zeros((h, w), bool)
+    piece[10:30, 10:50] = True
+    keys, frames, photos, ids = {}, {}, {}, {}
+    for i in range(3):
+        after = table.copy()
+        after[mug] = 0.25  # grey: the same chromaticity as the table
+        frames[("p2", "t0", i)] = dict(rgb=table)
+        frames[("p2", "t1", i)] = dict(rgb=after)
+        noise = rng.normal(0, 0.01, (h, w, 3)).astype(np.float32)
+        photos[("p2", i)] = srgb_to_linear(np.clip(after + noise, 0, 1))
+        keys[("p2", i)] = 1
+        ids1 = np.ones((h, w), np.int32)
+        ids1[mug], ids1[piece] = 3, 2
+        ids[("p2", "t0", i)] = np.ones((h, w), np.int32)
+        ids[("p2", "t1", i)] = ids1
+    diffs = key_differences(frames.get, keys, photos)
+    assert set(diffs) == set(keys)
+
+    def judged(n_confirmed=3, light_changed=False, **kw):
+        o = CompareOptions(**kw)
+        df = pd.DataFrame(dict(id=[1, 2, 3], changed=[False, True, True], type=["", "added", "added"],
+                               instance=[0, 2, 3], colour=[np.nan, 0.01, 0.02],
+                               n_colour=[0, 3, 3], n_t0=[3, 0, 0], n_t1=[3, 3, 3],
+                               n_confirmed=[0, 3, n_confirmed], area=[1.0, 800, 1200],
+                               support=[np.nan, 0.0, 0.0],
+                               **{c: [0.0] * 3 for c in ("x", "y", "z", "size")}))
+        cmp_stage._photo_support(df, ids, keys, diffs, o.confirm_photo, o.min_area)
+        cmp_stage._confirm_by_evidence(df, o, 8, light_changed)
+        return df, df.attrs["candidates"].set_index("instance")
+
+    df, cand = judged()
+    assert cand.loc[3, "photo"] > 0.9 and cand.loc[3, "verdict"] == "kept: photo"
+    assert cand.loc[2, "photo"] < 0.1 and cand.loc[2, "verdict"] == "dropped"
+    assert set(df.loc[df["changed"], "id"]) == {3}
+    for kw in (dict(n_confirmed=1), dict(light_changed=True), dict(confirm_photo=0.0)):
+        df, cand = judged(**kw)
+        assert not df["changed"].any() and cand.loc[3, "verdict"] == "dropped", kw

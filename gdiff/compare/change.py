@@ -152,6 +152,11 @@ class CompareOptions:
         (``colour`` of the changes table, :func:`surround_colour_change`;
         :func:`gdiff.compare.stage._confirm_by_evidence`). ``confirm_support`` 0 keeps them
         all.
+    confirm_photo: ... or the training photos of its own time show it differently from the
+        other time's render: at least half of its pixels at those photos' key poses differ by
+        at least this many times the photo's noise floor (:mod:`gdiff.compare.complete`;
+        :func:`gdiff.compare.stage._confirm_by_evidence`). Not when the light changed (a
+        photo then differs from the other time's render wherever the light did). 0: off.
     surround_width: width of the ring around a region whose mean colour stands for the local
         light in :func:`surround_colour_change`, as a fraction of the image's longer side.
     spread_vote: a changed object's surface is marked at every pose, also where the segmenter
@@ -195,6 +200,7 @@ class CompareOptions:
     flat_photo_contrast: float = 3.0
     confirm_support: float = 0.5
     confirm_colour: float = 0.25
+    confirm_photo: float = 2.0
     surround_width: float = 0.05
     spread_vote: float = 0.3
     complete_reach: float = 1.0
@@ -222,6 +228,8 @@ class CompareOptions:
                               "'compare.observed_min_views' (>= 1) are out of range")
         if not 0 <= self.confirm_colour <= 2:
             raise ConfigError("config key 'compare.confirm_colour' must lie in [0, 2]")
+        if self.confirm_photo < 0:
+            raise ConfigError("config key 'compare.confirm_photo' must be >= 0")
         if not 0 < self.surround_width < 0.5:
             raise ConfigError("config key 'compare.surround_width' must lie in (0, 0.5)")
         if not 0 < self.flat_max_rate <= 1:

@@ -137,20 +137,15 @@ def grow_pieces(mask: np.ndarray, other: np.ndarray, floor: float, reach: float,
     return out, grown
 
 
-def complete_key_masks(masks: dict, get, keys: dict[tuple[str, int], int], photos: dict,
-                       reach: float, alpha_min: float, known: dict | None = None
-                       ) -> tuple[int, int, int]:
-    """Complete in place the masks of every key frame that has a photo (module docstring).
-
-    ``masks[(path, i)] = (mask_t0, mask_t1)``; ``get((path, "t0" | "t1", i))`` the rendered
-    frame dict (``rgb`` sRGB, optional ``alpha``); ``keys[(path, i)]`` the key frame's time;
-    ``photos[(path, i)]`` its photo, linear RGB float32 at the frame's size; ``known[(path,
-    i)]`` (optional) bool [H, W], the pixels whose depth is observed at both times
-    (:func:`gdiff.compare.coverage.observed`): never added. Returns (key frames completed,
-    pieces grown, pixels added)."""
-    done = pieces = added = 0
+def key_differences(get, keys: dict[tuple[str, int], int], photos: dict
+                    ) -> dict[tuple[str, int], tuple[np.ndarray, float]]:
+    """Per key frame that has a photo and a render at both times: the photo's distance to the
+    other time's render (:func:`difference`, [H, W]) and the floor below which it does not
+    count (:func:`noise_floor`). ``get``, ``keys`` and ``photos`` as in
+    :func:`complete_key_masks`."""
+    out = {}
     for (p, i), t in sorted(keys.items()):
-        if (p, i) not in masks or (p, i) not in photos:
+        if (p, i) not in photos:
             continue
         t = int(t)
         own, other = get((p, TIMES[t], i)), get((p, TIMES[1 - t], i))
@@ -160,7 +155,31 @@ def complete_key_masks(masks: dict, get, keys: dict[tuple[str, int], int], photo
         if photo.shape != other["rgb"].shape:
             continue
         d_other = difference(photo, other["rgb"])
-        floor = noise_floor(d_other, difference(photo, own["rgb"]))
+        out[(p, i)] = (d_other, noise_floor(d_other, difference(photo, own["rgb"])))
+    return out
+
+
+def complete_key_masks(masks: dict, get, keys: dict[tuple[str, int], int], photos: dict,
+                       reach: float, alpha_min: float, known: dict | None = None,
+                       diffs: dict | None = None) -> tuple[int, int, int]:
+    """Complete in place the masks of every key frame that has a photo (module docstring).
+
+    ``masks[(path, i)] = (mask_t0, mask_t1)``; ``get((path, "t0" | "t1", i))`` the rendered
+    frame dict (``rgb`` sRGB, optional ``alpha``); ``keys[(path, i)]`` the key frame's time;
+    ``photos[(path, i)]`` its photo, linear RGB float32 at the frame's size; ``known[(path,
+    i)]`` (optional) bool [H, W], the pixels whose depth is observed at both times
+    (:func:`gdiff.compare.coverage.observed`): never added. ``diffs``: :func:`key_differences`
+    of these arguments when the caller has them already. Returns (key frames completed, pieces
+    grown, pixels added)."""
+    done = pieces = added = 0
+    if diffs is None:
+        diffs = key_differences(get, keys, photos)
+    for (p, i), t in sorted(keys.items()):
+        if (p, i) not in masks or (p, i) not in diffs:
+            continue
+        t = int(t)
+        own, other = get((p, TIMES[t], i)), get((p, TIMES[1 - t], i))
+        d_other, floor = diffs[(p, i)]
         valid = np.ones(d_other.shape, bool)
         for f in (own, other):
             if f.get("alpha") is not None:

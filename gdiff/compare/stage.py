@@ -34,7 +34,7 @@ from ..segment.base import ALPHA_MIN
 from ..track import world_points
 from .change import (HIDDEN_SHARE, CompareOptions, appearance_change, change_masks, decide,
                      pose_stats, replaced)
-from .complete import complete_key_masks
+from .complete import complete_key_masks, key_differences
 from .coverage import DepthView, observed, surface
 from .geometry import (GeometryEvidence, flat_flags, pixel_scale, pose_flags, pose_record,
                        write_evidence)
@@ -236,9 +236,15 @@ def compare_paths(ids: dict[Key, np.ndarray], frames: dict[Key, dict] | None,
         log.info("flat changes: appearance changed on %.1f %% of the surfaces judged (more "
                  "than compare.flat_max_rate = %.1f %%): taken as a change of light, nothing "
                  "marked", 100 * g_flat["rate"], 100 * o.flat_max_rate)
+    # the training photos against the other time's renders at the key poses, once: for the
+    # confirmation of the ID comparison's objects and for the completion of the key masks
+    diffs = (key_differences(get, keys, photos) if photos and keys and not light_changed and (
+        o.confirm_photo > 0 or o.complete_reach > 0) else {})
     if geo is not None:
         _support_3d(df, ids, [geo] + ([flat] if flat is not None and not light_changed else []),
                     band)
+        if o.confirm_photo > 0:
+            _photo_support(df, ids, keys, diffs, o.confirm_photo, o.min_area)
         if o.confirm_support > 0:
             _confirm_by_evidence(df, o, band, light_changed)
     else:
@@ -276,7 +282,7 @@ def compare_paths(ids: dict[Key, np.ndarray], frames: dict[Key, dict] | None,
                      "differs from the other time's render wherever it did")
         else:
             n, pieces, added = complete_key_masks(masks, get, keys, photos, o.complete_reach,
-                                                  alpha_min, known)
+                                                  alpha_min, known, diffs)
             log.info("key views: %d pieces of changes grown by %d pixels over %d key frames, "
                      "where the training photo differs from the other time's render next to "
                      "them (compare.complete_reach = %g)", pieces, added, n, o.complete_reach)
@@ -391,12 +397,43 @@ def _support_3d(df: pd.DataFrame, ids: dict[Key, np.ndarray], evidence: list[Geo
         df.loc[ch[inst == v], "support"] = near[members].sum() / max(total[members].sum(), 1)
 
 
+def _photo_support(df: pd.DataFrame, ids: dict[Key, np.ndarray], keys: dict[tuple[str, int], int],
+                   diffs: dict, margin: float, min_px: int) -> None:
+    """Column ``photo`` (in place): per changed object (an ``instance``, all its IDs together),
+    the share of its pixels at the key poses of the time its IDs show there (the ID map of the
+    key frame's own time) where the training photo differs from the other time's render by
+    more than ``margin`` times the photo's noise floor (``diffs``:
+    :func:`gdiff.compare.complete.key_differences`). NaN for unchanged IDs, and for objects
+    with fewer than ``min_px`` such pixels (no photo shows them)."""
+    df["photo"] = np.nan
+    ch = df.index[df["changed"]]
+    if len(ch) == 0 or not diffs:
+        return
+    size = int(max(int(m.max()) for m in ids.values())) + 1
+    total = np.zeros(size, np.int64)
+    above = np.zeros(size, np.int64)
+    for (p, i), (d, floor) in sorted(diffs.items()):
+        m = ids.get((p, TIMES[int(keys[(p, i)])], i))
+        if m is None or m.shape != d.shape:
+            continue
+        m = m.ravel()
+        total += np.bincount(m, minlength=size)
+        above += np.bincount(m[(d > margin * floor).ravel()], minlength=size)
+    changed = df.loc[ch, "id"].to_numpy(np.int64)
+    inst = df.loc[ch, "instance"].to_numpy()
+    for v in np.unique(inst):
+        members = changed[inst == v]
+        n = int(total[members].sum())
+        if n >= min_px:
+            df.loc[ch[inst == v], "photo"] = above[members].sum() / n
+
+
 CANDIDATE_COLUMNS = ["instance", "ids", "types", "n_t0", "n_t1", "n_confirmed", "area",
-                     "x", "y", "z", "size", "support", "colour", "verdict"]
+                     "x", "y", "z", "size", "support", "colour", "photo", "verdict"]
 
 
 def _candidate_row(instance: int, members: pd.DataFrame, support: float, colour: float,
-                   verdict: str) -> dict:
+                   verdict: str, photo: float = float("nan")) -> dict:
     """One row of ``candidates.csv`` (:data:`CANDIDATE_COLUMNS`) for a changed object made of
     the table rows ``members``: its counts, area, place and size are its largest member's."""
     head = members.loc[members["area"].idxmax()]
@@ -404,7 +441,7 @@ def _candidate_row(instance: int, members: pd.DataFrame, support: float, colour:
                 types=" ".join(sorted(set(members["type"]))), n_t0=int(head["n_t0"]),
                 n_t1=int(head["n_t1"]), n_confirmed=int(head["n_confirmed"]),
                 area=float(head["area"]), **{c: float(head[c]) for c in ("x", "y", "z", "size")},
-                support=support, colour=colour, verdict=verdict)
+                support=support, colour=colour, photo=photo, verdict=verdict)
 
 
 def _confirm_by_evidence(df: pd.DataFrame, o: CompareOptions, band: int,
@@ -425,10 +462,16 @@ def _confirm_by_evidence(df: pd.DataFrame, o: CompareOptions, band: int,
     surroundings changed by at least ``o.confirm_colour`` (per ID,
     :func:`gdiff.compare.change.surround_colour_change`; pooled over the instance weighted by
     ``n_colour``): an object swapped for one of the same shape and size changes no depth, but
-    its own colour. ``light_changed`` only words the log.
+    its own colour. With the light unchanged, it is also kept when the training photos of its
+    own time show it differently from the other time's render (``photo``,
+    :func:`_photo_support`, at least one half; ``o.confirm_photo`` > 0) and the ID comparison
+    confirmed it at two poses or more: on a sparse capture
+    neither the depth nor the rendered colours may tell a grey mug on a white table, the photo
+    does, and an unchanged surface the segmenter cut differently looks in the photo as the
+    other time renders it.
 
-    Every instance judged, with its figures and verdict (``kept: 3D``, ``kept: colour`` or
-    ``dropped``), goes to ``df.attrs["candidates"]`` (columns :data:`CANDIDATE_COLUMNS`;
+    Every instance judged, with its figures and verdict (``kept: 3D``, ``kept: colour``,
+    ``kept: photo`` or ``dropped``), goes to ``df.attrs["candidates"]`` (columns :data:`CANDIDATE_COLUMNS`;
     ``n_t0``, ``n_t1``, ``n_confirmed``, ``area``, ``x``, ``y``, ``z`` and ``size`` are those
     of its largest member).
     """
@@ -439,27 +482,39 @@ def _confirm_by_evidence(df: pd.DataFrame, o: CompareOptions, band: int,
     inst = df.loc[ch, "instance"].to_numpy()
     colour = np.nan_to_num(df.loc[ch, "colour"].to_numpy(float))  # NaN only where n_colour 0
     weight = df.loc[ch, "n_colour"].to_numpy(float)
+    photo = (df.loc[ch, "photo"].to_numpy(float) if "photo" in df
+             else np.full(len(ch), np.nan))
+    by_photo = o.confirm_photo > 0 and not light_changed
     drop, rows = [], []
     for v in np.unique(inst):
         sel = inst == v
         support = float(df.loc[ch[sel], "support"].iloc[0])
         w = weight[sel]
         col = float((colour[sel] * w).sum() / w.sum()) if w.sum() else np.nan
+        pho = float(photo[sel][0])
+        # the photo's word counts for an object confirmed at more than one pose: one pose's
+        # render, against the photo next to it, may differ where the fit is poor
+        several = int(df.loc[ch[sel], "n_confirmed"].max()) >= 2
         verdict = ("kept: 3D" if support >= o.confirm_support else
-                   "kept: colour" if col >= o.confirm_colour else "dropped")
-        log.debug("instance %d: %.2f of its pixels near a change in 3D, colour change %.2f: "
-                  "%s", v, support, col, verdict)
+                   "kept: colour" if col >= o.confirm_colour else
+                   "kept: photo" if by_photo and several and pho >= 0.5 else "dropped")
+        log.debug("instance %d: %.2f of its pixels near a change in 3D, colour change %.2f, "
+                  "%.2f shown differently by its photos: %s", v, support, col, pho, verdict)
         if verdict == "dropped":
             drop.extend(ch[sel])
-        rows.append(_candidate_row(int(v), df.loc[ch[sel]], support, col, verdict))
+        rows.append(_candidate_row(int(v), df.loc[ch[sel]], support, col, verdict, pho))
     df.attrs["candidates"] = pd.DataFrame(rows, columns=CANDIDATE_COLUMNS)
     n = len(np.unique(inst))
+    n_photo = sum(r["verdict"] == "kept: photo" for r in rows)
     log.info("%s%d of %d changed objects of the ID comparison changed in 3D (>= %.0f %% of "
-             "their pixels within %d px of the 3D evidence) or in colour (by >= %.2f, relative "
-             "to their surroundings) and are kept; %d IDs dropped",
+             "their pixels within %d px of the 3D evidence), in colour (by >= %.2f, relative "
+             "to their surroundings)%s and are kept; %d IDs dropped",
              "change of light: " if light_changed else "",
              n - len(np.unique(df.loc[drop, "instance"])), n, 100 * o.confirm_support, band,
-             o.confirm_colour, len(drop))
+             o.confirm_colour,
+             f" or in their training photos ({n_photo}: >= half of their pixels differ from "
+             f"the other time's render by >= {o.confirm_photo:g} x the photo's noise floor)"
+             if by_photo else "", len(drop))
     df.loc[drop, "changed"] = False
     df.loc[drop, "type"] = ""
     df.loc[drop, "instance"] = 0

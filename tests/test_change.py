@@ -1841,7 +1841,8 @@ def test_photo_confirms_an_object_that_neither_depth_nor_colour_can():
     (no colour evidence). The training photos of the after visit show it where the before
     render shows table: it is kept by the photos. A piece of table the segmenter cut
     differently at t1 looks in those photos as the before render draws it: dropped. Not kept
-    so when seen at one pose only, nor when the light changed, nor with confirm_photo 0."""
+    so when seen at one pose only, nor when the light changed, nor with confirm_photo 0 (the
+    default), nor where no photo of the before visit shows the surface."""
     from gdiff.compare.complete import key_differences
 
     rng = np.random.default_rng(0)
@@ -1868,7 +1869,7 @@ def test_photo_confirms_an_object_that_neither_depth_nor_colour_can():
     assert set(diffs) == set(keys)
 
     def judged(n_confirmed=3, light_changed=False, **kw):
-        o = CompareOptions(**kw)
+        o = CompareOptions(**{"confirm_photo": 2.0, **kw})
         df = pd.DataFrame(dict(id=[1, 2, 3], changed=[False, True, True], type=["", "added", "added"],
                                instance=[0, 2, 3], colour=[np.nan, 0.01, 0.02],
                                n_colour=[0, 3, 3], n_t0=[3, 0, 0], n_t1=[3, 3, 3],
@@ -1886,3 +1887,11 @@ def test_photo_confirms_an_object_that_neither_depth_nor_colour_can():
     for kw in (dict(n_confirmed=1), dict(light_changed=True), dict(confirm_photo=0.0)):
         df, cand = judged(**kw)
         assert not df["changed"].any() and cand.loc[3, "verdict"] == "dropped", kw
+    # where the before photos did not see the table, the before render there is a guess
+    unseen = {k: ~mug for k in keys}
+    df = pd.DataFrame(dict(id=[3], changed=[True], type=["added"], instance=[3],
+                           n_confirmed=[3]))
+    cmp_stage._photo_support(df, ids, keys, diffs, 2.0, 24, unseen)
+    assert np.isnan(df.loc[0, "photo"])
+    cmp_stage._photo_support(df, ids, keys, diffs, 2.0, 24, None)
+    assert df.loc[0, "photo"] > 0.9

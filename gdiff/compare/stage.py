@@ -147,7 +147,9 @@ class _JudgePose:
                                                              o.evidence_open, known, differ),
                                     points=tuple(pts), stride=self.flat_stride)
         key = self.key_poses is not None and pose in self.key_poses
-        return stats, judged, g_rec, f_rec, known if key else None
+        # and the pixels a photo of each time shows (the photo test of the ID comparison)
+        both = shown[0] & shown[1] if shown[0] is not None and shown[1] is not None else None
+        return stats, judged, g_rec, f_rec, (known, both) if key else None
 
 
 def compare_paths(ids: dict[Key, np.ndarray], frames: dict[Key, dict] | None,
@@ -194,14 +196,19 @@ def compare_paths(ids: dict[Key, np.ndarray], frames: dict[Key, dict] | None,
     judge = _JudgePose(ids, get, o, views, geo.stride if geo is not None else None,
                        flat.stride if flat is not None else None, alpha_min,
                        key_photos=key_photos if o.flat_photo_contrast > 0 else None,
-                       key_poses=set(keys) if keys and photos and o.complete_reach > 0 else None)
+                       key_poses=set(keys) if keys and photos and (
+                           o.complete_reach > 0 or o.confirm_photo > 0) else None)
     results = ordered_map(judge, poses, workers)
     known = {}  # key pose -> bool [H, W], the depth of both times observed there
+    shown = {}  # key pose -> bool [H, W], a photo of each time shows the surface there
     for pose, (st, jd, g_rec, f_rec, kn) in zip(poses, progress(results, desc="compare",
                                                                total=len(poses))):
         stats.append(st)
         if kn is not None:
-            known[pose] = kn
+            if kn[0] is not None:
+                known[pose] = kn[0]
+            if kn[1] is not None:
+                shown[pose] = kn[1]
         if jd is not None:
             judged += jd
         if g_rec is not None:
@@ -244,7 +251,7 @@ def compare_paths(ids: dict[Key, np.ndarray], frames: dict[Key, dict] | None,
         _support_3d(df, ids, [geo] + ([flat] if flat is not None and not light_changed else []),
                     band)
         if o.confirm_photo > 0:
-            _photo_support(df, ids, keys, diffs, o.confirm_photo, o.min_area)
+            _photo_support(df, ids, keys, diffs, o.confirm_photo, o.min_area, shown)
         if o.confirm_support > 0:
             _confirm_by_evidence(df, o, band, light_changed)
     else:
@@ -398,13 +405,16 @@ def _support_3d(df: pd.DataFrame, ids: dict[Key, np.ndarray], evidence: list[Geo
 
 
 def _photo_support(df: pd.DataFrame, ids: dict[Key, np.ndarray], keys: dict[tuple[str, int], int],
-                   diffs: dict, margin: float, min_px: int) -> None:
+                   diffs: dict, margin: float, min_px: int, shown: dict | None = None) -> None:
     """Column ``photo`` (in place): per changed object (an ``instance``, all its IDs together),
     the share of its pixels at the key poses of the time its IDs show there (the ID map of the
     key frame's own time) where the training photo differs from the other time's render by
     more than ``margin`` times the photo's noise floor (``diffs``:
-    :func:`gdiff.compare.complete.key_differences`). NaN for unchanged IDs, and for objects
-    with fewer than ``min_px`` such pixels (no photo shows them)."""
+    :func:`gdiff.compare.complete.key_differences`). ``shown[(path, i)]`` (optional, bool
+    [H, W]): the pixels of the key pose whose surface a photo of each time shows
+    (:func:`gdiff.compare.coverage.observed`); only those count. Where the other time's photos
+    did not see the surface, its render there is a guess, and a photo differs from it on any
+    surface. NaN for unchanged IDs, and for objects with fewer than ``min_px`` such pixels."""
     df["photo"] = np.nan
     ch = df.index[df["changed"]]
     if len(ch) == 0 or not diffs:
@@ -416,9 +426,12 @@ def _photo_support(df: pd.DataFrame, ids: dict[Key, np.ndarray], keys: dict[tupl
         m = ids.get((p, TIMES[int(keys[(p, i)])], i))
         if m is None or m.shape != d.shape:
             continue
+        hit = d > margin * floor
+        if shown is not None and (p, i) in shown:
+            m = np.where(shown[(p, i)], m, 0)  # ID 0 is counted for no object
         m = m.ravel()
         total += np.bincount(m, minlength=size)
-        above += np.bincount(m[(d > margin * floor).ravel()], minlength=size)
+        above += np.bincount(m[hit.ravel()], minlength=size)
     changed = df.loc[ch, "id"].to_numpy(np.int64)
     inst = df.loc[ch, "instance"].to_numpy()
     for v in np.unique(inst):

@@ -113,11 +113,15 @@ class _JudgePose:
                                           points=pts[time])
         obs = [s[0] if s is not None else None for s in seen]
         shown = [s[1] if s is not None else None for s in seen]
+        # a photo of each time shows the surface (the coverage, and at a key pose the ID
+        # comparison's photo test)
+        shown_both = (shown[0] & shown[1] if shown[0] is not None and shown[1] is not None
+                      else None)
         judged = None
         if all(m is not None for m in obs + shown):
             both = (surface(f0["depth"], f0.get("alpha"), self.alpha_min)
                     & surface(f1["depth"], f1.get("alpha"), self.alpha_min))
-            judged = np.array([int(both.sum()), int((shown[0] & shown[1]).sum()),
+            judged = np.array([int(both.sum()), int(shown_both.sum()),
                                int((obs[0] & obs[1]).sum())], np.int64)
         differ = None  # the pose's appearance change: the evidence needs it, the IDs may
         if evidence and f0.get("rgb") is not None and f1.get("rgb") is not None:
@@ -147,9 +151,7 @@ class _JudgePose:
                                                              o.evidence_open, known, differ),
                                     points=tuple(pts), stride=self.flat_stride)
         key = self.key_poses is not None and pose in self.key_poses
-        # and the pixels a photo of each time shows (the photo test of the ID comparison)
-        both = shown[0] & shown[1] if shown[0] is not None and shown[1] is not None else None
-        return stats, judged, g_rec, f_rec, (known, both) if key else None
+        return stats, judged, g_rec, f_rec, (known, shown_both) if key else None
 
 
 def compare_paths(ids: dict[Key, np.ndarray], frames: dict[Key, dict] | None,
@@ -370,6 +372,28 @@ def _spread(masks, ids: dict[Key, np.ndarray], get, keys: dict[tuple[str, int], 
              len(voxels[0]), len(voxels[1]), 100 * o.spread_vote, added, len(poses))
 
 
+def _id_counts(ids: dict[Key, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+    """Two zeroed int64 counters indexed by ID value (every ID of ``ids``): pixels of an ID,
+    and those of them that pass a test."""
+    size = int(max(int(m.max()) for m in ids.values())) + 1
+    return np.zeros(size, np.int64), np.zeros(size, np.int64)
+
+
+def _pool_instances(df: pd.DataFrame, column: str, total: np.ndarray, hits: np.ndarray,
+                    min_px: int = 0) -> None:
+    """Column ``column`` of the changed rows of ``df`` (in place): per ``instance``, the hits
+    of all its IDs over their pixels (``total``, ``hits``: counts per ID value). Left as it is
+    for an instance with fewer than ``min_px`` pixels (at least one counts as one)."""
+    ch = df.index[df["changed"]]
+    changed = df.loc[ch, "id"].to_numpy(np.int64)
+    inst = df.loc[ch, "instance"].to_numpy()
+    for v in np.unique(inst):
+        members = changed[inst == v]
+        n = int(total[members].sum())
+        if n >= min_px:
+            df.loc[ch[inst == v], column] = hits[members].sum() / max(n, 1)
+
+
 def _support_3d(df: pd.DataFrame, ids: dict[Key, np.ndarray], evidence: list[GeometryEvidence],
                 band: int) -> None:
     """Column ``support`` (in place): per changed object (an ``instance`` of the table, all
@@ -382,9 +406,8 @@ def _support_3d(df: pd.DataFrame, ids: dict[Key, np.ndarray], evidence: list[Geo
     ch = df.index[df["changed"]]
     if len(ch) == 0:
         return
-    size = int(max(int(m.max()) for m in ids.values())) + 1  # pixel counts per ID value
-    total = np.zeros(size, np.int64)
-    near = np.zeros(size, np.int64)
+    total, near = _id_counts(ids)
+    size = len(total)
     kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * band + 1, 2 * band + 1))
     for p, i in sorted({(p, i) for p, _, i in ids}):
         if (p, i) not in evidence[0]:
@@ -397,11 +420,7 @@ def _support_3d(df: pd.DataFrame, ids: dict[Key, np.ndarray], evidence: list[Geo
             if hit.any():
                 g = (cv2.dilate(hit.astype(np.uint8), kernel) > 0).ravel()
                 near += np.bincount(m[g], minlength=size)
-    changed = df.loc[ch, "id"].to_numpy(np.int64)
-    inst = df.loc[ch, "instance"].to_numpy()
-    for v in np.unique(inst):
-        members = changed[inst == v]
-        df.loc[ch[inst == v], "support"] = near[members].sum() / max(total[members].sum(), 1)
+    _pool_instances(df, "support", total, near)
 
 
 def _photo_support(df: pd.DataFrame, ids: dict[Key, np.ndarray], keys: dict[tuple[str, int], int],
@@ -419,9 +438,8 @@ def _photo_support(df: pd.DataFrame, ids: dict[Key, np.ndarray], keys: dict[tupl
     ch = df.index[df["changed"]]
     if len(ch) == 0 or not diffs:
         return
-    size = int(max(int(m.max()) for m in ids.values())) + 1
-    total = np.zeros(size, np.int64)
-    above = np.zeros(size, np.int64)
+    total, above = _id_counts(ids)
+    size = len(total)
     for (p, i), (d, floor) in sorted(diffs.items()):
         m = ids.get((p, TIMES[int(keys[(p, i)])], i))
         if m is None or m.shape != d.shape:
@@ -432,13 +450,7 @@ def _photo_support(df: pd.DataFrame, ids: dict[Key, np.ndarray], keys: dict[tupl
         m = m.ravel()
         total += np.bincount(m, minlength=size)
         above += np.bincount(m[hit.ravel()], minlength=size)
-    changed = df.loc[ch, "id"].to_numpy(np.int64)
-    inst = df.loc[ch, "instance"].to_numpy()
-    for v in np.unique(inst):
-        members = changed[inst == v]
-        n = int(total[members].sum())
-        if n >= min_px:
-            df.loc[ch[inst == v], "photo"] = above[members].sum() / n
+    _pool_instances(df, "photo", total, above, min_px)
 
 
 CANDIDATE_COLUMNS = ["instance", "ids", "types", "n_t0", "n_t1", "n_confirmed", "area",

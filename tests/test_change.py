@@ -206,7 +206,8 @@ def test_stage_files(demo_paths, tmp_path, monkeypatch):
     assert set(ch["type"]) <= {"added", "removed", "moved"} and len(ch) == summary["changed"]
     cand = pd.read_csv(res / "change" / "candidates.csv")
     assert list(cand.columns) == ["instance", "ids", "types", "n_t0", "n_t1", "n_confirmed",
-                                  "area", "x", "y", "z", "size", "support", "colour", "photo", "verdict"]
+                                  "area", "x", "y", "z", "size", "support", "colour", "photo",
+                                  "photo_other", "verdict"]
     assert {"x", "y", "z", "size"} <= set(ch.columns)
     kept = cand[cand["verdict"] != "dropped"]
     assert set(kept["instance"]) == set(ch["instance"])
@@ -1839,10 +1840,14 @@ def test_photo_confirms_an_object_that_neither_depth_nor_colour_can():
     """A sparse capture: a dark grey mug is put on a light grey table. The fit drew it where
     the table is (no 3D evidence) and its chromaticity relative to the table is the table's
     (no colour evidence). The training photos of the after visit show it where the before
-    render shows table: it is kept by the photos. A piece of table the segmenter cut
-    differently at t1 looks in those photos as the before render draws it: dropped. Not kept
-    so when seen at one pose only, nor when the light changed, nor with confirm_photo 0 (the
-    default), nor where no photo of the before visit shows the surface."""
+    render shows table, and those of the before visit show table where the after render shows
+    the mug: it is kept by the photos. A piece of table the segmenter cut differently at t1
+    looks in the photos of both visits as the other time renders it: dropped. So is a piece
+    the before model renders wrongly at the after poses (it never saw it from there): the after
+    photos differ from that render, but the before photos show it as the after model renders
+    it. Not kept when seen at one pose only, nor when the light changed, nor with
+    confirm_photo 0 (off), nor without photos of the before visit, nor where no photo
+    of the before visit shows the surface."""
     from gdiff.compare.complete import key_differences
 
     rng = np.random.default_rng(0)
@@ -1852,39 +1857,51 @@ def test_photo_confirms_an_object_that_neither_depth_nor_colour_can():
     mug[40:80, 60:90] = True
     piece = np.zeros((h, w), bool)
     piece[10:30, 10:50] = True
+    poor = np.zeros((h, w), bool)
+    poor[90:115, 100:150] = True
+    after = table.copy()
+    after[mug] = 0.25  # grey: the same chromaticity as the table
     keys, frames, photos, ids = {}, {}, {}, {}
-    for i in range(3):
-        after = table.copy()
-        after[mug] = 0.25  # grey: the same chromaticity as the table
-        frames[("p2", "t0", i)] = dict(rgb=table)
+    for i in range(6):
+        t = int(i < 3)  # poses 0-2: after photos, 3-5: before photos
+        before = table.copy()
+        if t == 1:
+            before[poor] = 0.35  # the before model's guess where its photos never looked
+        frames[("p2", "t0", i)] = dict(rgb=before)
         frames[("p2", "t1", i)] = dict(rgb=after)
         noise = rng.normal(0, 0.01, (h, w, 3)).astype(np.float32)
-        photos[("p2", i)] = srgb_to_linear(np.clip(after + noise, 0, 1))
-        keys[("p2", i)] = 1
+        photos[("p2", i)] = srgb_to_linear(np.clip((after if t else table) + noise, 0, 1))
+        keys[("p2", i)] = t
         ids1 = np.ones((h, w), np.int32)
-        ids1[mug], ids1[piece] = 3, 2
+        ids1[mug], ids1[piece], ids1[poor] = 3, 2, 4
         ids[("p2", "t0", i)] = np.ones((h, w), np.int32)
         ids[("p2", "t1", i)] = ids1
     diffs = key_differences(frames.get, keys, photos)
     assert set(diffs) == set(keys)
 
-    def judged(n_confirmed=3, light_changed=False, **kw):
+    def judged(n_confirmed=3, light_changed=False, diffs=diffs, **kw):
         o = CompareOptions(**{"confirm_photo": 2.0, **kw})
-        df = pd.DataFrame(dict(id=[1, 2, 3], changed=[False, True, True], type=["", "added", "added"],
-                               instance=[0, 2, 3], colour=[np.nan, 0.01, 0.02],
-                               n_colour=[0, 3, 3], n_t0=[3, 0, 0], n_t1=[3, 3, 3],
-                               n_confirmed=[0, 3, n_confirmed], area=[1.0, 800, 1200],
-                               support=[np.nan, 0.0, 0.0],
-                               **{c: [0.0] * 3 for c in ("x", "y", "z", "size")}))
+        df = pd.DataFrame(dict(id=[1, 2, 3, 4], changed=[False, True, True, True],
+                               type=["", "added", "added", "added"], instance=[0, 2, 3, 4],
+                               colour=[np.nan, 0.01, 0.02, 0.01], n_colour=[0, 3, 3, 3],
+                               n_t0=[6, 0, 0, 0], n_t1=[6, 6, 6, 6],
+                               n_confirmed=[0, 3, n_confirmed, 3], area=[1.0, 800, 1200, 1250],
+                               support=[np.nan, 0.0, 0.0, 0.0],
+                               **{c: [0.0] * 4 for c in ("x", "y", "z", "size")}))
         cmp_stage._photo_support(df, ids, keys, diffs, o.confirm_photo, o.min_area)
         cmp_stage._confirm_by_evidence(df, o, 8, light_changed)
         return df, df.attrs["candidates"].set_index("instance")
 
     df, cand = judged()
-    assert cand.loc[3, "photo"] > 0.9 and cand.loc[3, "verdict"] == "kept: photo"
-    assert cand.loc[2, "photo"] < 0.1 and cand.loc[2, "verdict"] == "dropped"
+    assert cand.loc[3, ["photo", "photo_other"]].min() > 0.9
+    assert cand.loc[3, "verdict"] == "kept: photo"
+    assert cand.loc[2, ["photo", "photo_other"]].max() < 0.1 and cand.loc[2, "verdict"] == "dropped"
+    assert cand.loc[4, "photo"] > 0.9 and cand.loc[4, "photo_other"] < 0.1
+    assert cand.loc[4, "verdict"] == "dropped"
     assert set(df.loc[df["changed"], "id"]) == {3}
-    for kw in (dict(n_confirmed=1), dict(light_changed=True), dict(confirm_photo=0.0)):
+    after_only = {k: v for k, v in diffs.items() if keys[k] == 1}
+    for kw in (dict(n_confirmed=1), dict(light_changed=True), dict(confirm_photo=0.0),
+               dict(diffs=after_only)):
         df, cand = judged(**kw)
         assert not df["changed"].any() and cand.loc[3, "verdict"] == "dropped", kw
     # where the before photos did not see the table, the before render there is a guess
@@ -1892,6 +1909,6 @@ def test_photo_confirms_an_object_that_neither_depth_nor_colour_can():
     df = pd.DataFrame(dict(id=[3], changed=[True], type=["added"], instance=[3],
                            n_confirmed=[3]))
     cmp_stage._photo_support(df, ids, keys, diffs, 2.0, 24, unseen)
-    assert np.isnan(df.loc[0, "photo"])
+    assert np.isnan(df.loc[0, "photo"]) and np.isnan(df.loc[0, "photo_other"])
     cmp_stage._photo_support(df, ids, keys, diffs, 2.0, 24, None)
-    assert df.loc[0, "photo"] > 0.9
+    assert df.loc[0, ["photo", "photo_other"]].min() > 0.9

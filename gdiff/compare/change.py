@@ -152,13 +152,15 @@ class CompareOptions:
         (``colour`` of the changes table, :func:`surround_colour_change`;
         :func:`gdiff.compare.stage._confirm_by_evidence`). ``confirm_support`` 0 keeps them
         all.
-    confirm_photo: ... or the training photos of its own time show it differently from the
-        other time's render: at least half of its pixels at those photos' key poses differ by
-        at least this many times the photo's noise floor (:mod:`gdiff.compare.complete`;
-        :func:`gdiff.compare.stage._confirm_by_evidence`; only pixels whose surface photos of
+    confirm_photo: ... or the training photos of both visits show it changed: at least half
+        of its pixels at the key poses of its own time differ from the other time's render by
+        at least this many times the photo's noise floor (:mod:`gdiff.compare.complete`), and
+        so do at least half of them at the key poses of the other time, where the other
+        visit's photos are compared with this time's render
+        (:func:`gdiff.compare.stage._confirm_by_evidence`; only pixels whose surface photos of
         both times show count; and the ID comparison confirmed it at two poses or more). Not
         when the light changed (a photo then differs from the other time's render wherever
-        the light did). 0 (default): off; 2 was measured (docs/design.md).
+        the light did). 0: off.
     surround_width: width of the ring around a region whose mean colour stands for the local
         light in :func:`surround_colour_change`, as a fraction of the image's longer side.
     spread_vote: a changed object's surface is marked at every pose, also where the segmenter
@@ -202,7 +204,7 @@ class CompareOptions:
     flat_photo_contrast: float = 3.0
     confirm_support: float = 0.5
     confirm_colour: float = 0.25
-    confirm_photo: float = 0.0
+    confirm_photo: float = 2.0
     surround_width: float = 0.05
     spread_vote: float = 0.3
     complete_reach: float = 1.0

@@ -175,7 +175,9 @@ def compare_paths(ids: dict[Key, np.ndarray], frames: dict[Key, dict] | None,
     does the ID comparison for a region whose depth is not trusted at a pose of a sparse
     capture and that only its colours would confirm; the key frames' masks are completed where
     the photo differs from the other time's render next to a change (``complete_reach``,
-    :mod:`gdiff.compare.complete`).
+    :mod:`gdiff.compare.complete`), and an object of the ID comparison that neither depth nor
+    colour confirms is kept when the photos of both times show it changed (``confirm_photo``,
+    :func:`_photo_support`).
     ``alpha_min``: a pixel whose rendered opacity (the frames' ``alpha``) is below this shows no
     surface and is not judged (the segmenter's ``alpha_min``: it gave such pixels no ID). Returns
     ({(path, i): (mask_t0, mask_t1)}, changes table: id,
@@ -258,6 +260,9 @@ def compare_paths(ids: dict[Key, np.ndarray], frames: dict[Key, dict] | None,
             _confirm_by_evidence(df, o, band, light_changed)
     else:
         df["support"] = np.nan
+    for c in ("photo", "photo_other"):  # the same columns in changes.csv whatever was asked
+        if c not in df:
+            df[c] = np.nan
     _replaced(df, o)
     changed = df.loc[df["changed"], "id"].tolist()
     masks = {(p, i): change_masks(ids[(p, "t0", i)], ids[(p, "t1", i)], changed)
@@ -425,40 +430,52 @@ def _support_3d(df: pd.DataFrame, ids: dict[Key, np.ndarray], evidence: list[Geo
 
 def _photo_support(df: pd.DataFrame, ids: dict[Key, np.ndarray], keys: dict[tuple[str, int], int],
                    diffs: dict, margin: float, min_px: int, shown: dict | None = None) -> None:
-    """Column ``photo`` (in place): per changed object (an ``instance``, all its IDs together),
-    the share of its pixels at the key poses of the time its IDs show there (the ID map of the
-    key frame's own time) where the training photo differs from the other time's render by
-    more than ``margin`` times the photo's noise floor (``diffs``:
-    :func:`gdiff.compare.complete.key_differences`). ``shown[(path, i)]`` (optional, bool
-    [H, W]): the pixels of the key pose whose surface a photo of each time shows
+    """Columns ``photo`` and ``photo_other`` (in place): per changed object (an ``instance``,
+    all its IDs together), the share of its pixels at the key poses where the training photo
+    differs from the render of the time it was not taken at by more than ``margin`` times the
+    photo's noise floor (``diffs``: :func:`gdiff.compare.complete.key_differences`).
+    ``photo``: at the key poses of the time its IDs show there (the ID map of the key frame's
+    own time: an added object at the after visit's poses, where the photos show it and the
+    before render what stood there). ``photo_other``: at the key poses of the other time, in
+    the other time's ID map (an added object at the before visit's poses, drawn by the after
+    render, where the photos show what stood there before). A real change shows both ways; a
+    surface one time's model renders poorly from the other time's poses (it never saw it from
+    there) only in ``photo``. ``shown[(path, i)]`` (optional, bool [H, W]): the pixels of the
+    key pose whose surface a photo of each time shows
     (:func:`gdiff.compare.coverage.observed`); only those count. Where the other time's photos
     did not see the surface, its render there is a guess, and a photo differs from it on any
     surface. NaN for unchanged IDs, and for objects with fewer than ``min_px`` such pixels."""
     df["photo"] = np.nan
+    df["photo_other"] = np.nan
     ch = df.index[df["changed"]]
     if len(ch) == 0 or not diffs:
         return
     total, above = _id_counts(ids)
+    total_o, above_o = _id_counts(ids)
     size = len(total)
     for (p, i), (d, floor) in sorted(diffs.items()):
-        m = ids.get((p, TIMES[int(keys[(p, i)])], i))
-        if m is None or m.shape != d.shape:
-            continue
-        hit = d > margin * floor
-        if shown is not None and (p, i) in shown:
-            m = np.where(shown[(p, i)], m, 0)  # ID 0 is counted for no object
-        m = m.ravel()
-        total += np.bincount(m, minlength=size)
-        above += np.bincount(m[hit.ravel()], minlength=size)
+        t = int(keys[(p, i)])
+        hit = (d > margin * floor).ravel()
+        for k, (tot, ab) in ((t, (total, above)), (1 - t, (total_o, above_o))):
+            m = ids.get((p, TIMES[k], i))
+            if m is None or m.shape != d.shape:
+                continue
+            if shown is not None and (p, i) in shown:
+                m = np.where(shown[(p, i)], m, 0)  # ID 0 is counted for no object
+            m = m.ravel()
+            tot += np.bincount(m, minlength=size)
+            ab += np.bincount(m[hit], minlength=size)
     _pool_instances(df, "photo", total, above, min_px)
+    _pool_instances(df, "photo_other", total_o, above_o, min_px)
 
 
 CANDIDATE_COLUMNS = ["instance", "ids", "types", "n_t0", "n_t1", "n_confirmed", "area",
-                     "x", "y", "z", "size", "support", "colour", "photo", "verdict"]
+                     "x", "y", "z", "size", "support", "colour", "photo", "photo_other", "verdict"]
 
 
 def _candidate_row(instance: int, members: pd.DataFrame, support: float, colour: float,
-                   verdict: str, photo: float = float("nan")) -> dict:
+                   verdict: str, photo: float = float("nan"),
+                   photo_other: float = float("nan")) -> dict:
     """One row of ``candidates.csv`` (:data:`CANDIDATE_COLUMNS`) for a changed object made of
     the table rows ``members``: its counts, area, place and size are its largest member's."""
     head = members.loc[members["area"].idxmax()]
@@ -466,7 +483,8 @@ def _candidate_row(instance: int, members: pd.DataFrame, support: float, colour:
                 types=" ".join(sorted(set(members["type"]))), n_t0=int(head["n_t0"]),
                 n_t1=int(head["n_t1"]), n_confirmed=int(head["n_confirmed"]),
                 area=float(head["area"]), **{c: float(head[c]) for c in ("x", "y", "z", "size")},
-                support=support, colour=colour, photo=photo, verdict=verdict)
+                support=support, colour=colour, photo=photo, photo_other=photo_other,
+                verdict=verdict)
 
 
 def _confirm_by_evidence(df: pd.DataFrame, o: CompareOptions, band: int,
@@ -487,13 +505,13 @@ def _confirm_by_evidence(df: pd.DataFrame, o: CompareOptions, band: int,
     surroundings changed by at least ``o.confirm_colour`` (per ID,
     :func:`gdiff.compare.change.surround_colour_change`; pooled over the instance weighted by
     ``n_colour``): an object swapped for one of the same shape and size changes no depth, but
-    its own colour. With the light unchanged, it is also kept when the training photos of its
-    own time show it differently from the other time's render (``photo``,
-    :func:`_photo_support`, at least one half; ``o.confirm_photo`` > 0) and the ID comparison
-    confirmed it at two poses or more: on a sparse capture
-    neither the depth nor the rendered colours may tell a grey mug on a white table, the photo
-    does, and an unchanged surface the segmenter cut differently looks in the photo as the
-    other time renders it.
+    its own colour. With the light unchanged, it is also kept when the training photos show it
+    changed both ways (``photo`` and ``photo_other``, :func:`_photo_support`, each at least
+    one half; ``o.confirm_photo`` > 0) and the ID comparison confirmed it at two poses or more:
+    on a sparse capture neither the depth nor the rendered colours may tell a grey mug on a
+    white table, the photos do; an unchanged surface the segmenter cut differently looks in
+    the photos as the other time renders it, and one the other time's model renders poorly
+    from this time's poses looks in the other time's photos as this time renders it.
 
     Every instance judged, with its figures and verdict (``kept: 3D``, ``kept: colour``,
     ``kept: photo`` or ``dropped``), goes to ``df.attrs["candidates"]`` (columns :data:`CANDIDATE_COLUMNS`;
@@ -517,17 +535,21 @@ def _confirm_by_evidence(df: pd.DataFrame, o: CompareOptions, band: int,
         w = weight[sel]
         col = float((colour[sel] * w).sum() / w.sum()) if w.sum() else np.nan
         pho = float(photo[sel][0])
+        phx = (float(df.loc[ch[sel], "photo_other"].iloc[0]) if "photo_other" in df
+               else np.nan)
         # the photo's word counts for an object confirmed at more than one pose: one pose's
         # render, against the photo next to it, may differ where the fit is poor
         several = int(df.loc[ch[sel], "n_confirmed"].max()) >= 2
         verdict = ("kept: 3D" if support >= o.confirm_support else
                    "kept: colour" if col >= o.confirm_colour else
-                   "kept: photo" if by_photo and several and pho >= 0.5 else "dropped")
+                   "kept: photo" if by_photo and several and pho >= 0.5 and phx >= 0.5
+                   else "dropped")
         log.debug("instance %d: %.2f of its pixels near a change in 3D, colour change %.2f, "
-                  "%.2f shown differently by its photos: %s", v, support, col, pho, verdict)
+                  "%.2f / %.2f shown changed by the photos of its own / the other time: %s", v,
+                  support, col, pho, phx, verdict)
         if verdict == "dropped":
             drop.extend(ch[sel])
-        rows.append(_candidate_row(int(v), df.loc[ch[sel]], support, col, verdict, pho))
+        rows.append(_candidate_row(int(v), df.loc[ch[sel]], support, col, verdict, pho, phx))
     df.attrs["candidates"] = pd.DataFrame(rows, columns=CANDIDATE_COLUMNS)
     n = len(np.unique(inst))
     n_photo = sum(r["verdict"] == "kept: photo" for r in rows)
@@ -537,8 +559,9 @@ def _confirm_by_evidence(df: pd.DataFrame, o: CompareOptions, band: int,
              "change of light: " if light_changed else "",
              n - len(np.unique(df.loc[drop, "instance"])), n, 100 * o.confirm_support, band,
              o.confirm_colour,
-             f" or in their training photos ({n_photo}: >= half of their pixels differ from "
-             f"the other time's render by >= {o.confirm_photo:g} x the photo's noise floor)"
+             f" or in the training photos ({n_photo}: >= half of their pixels differ from "
+             f"the other time's render by >= {o.confirm_photo:g} x the photo's noise floor, "
+             f"at the key poses of both times)"
              if by_photo else "", len(drop))
     df.loc[drop, "changed"] = False
     df.loc[drop, "type"] = ""
@@ -620,8 +643,8 @@ def compare(instances_dir, poses_json, out_dir, options: CompareOptions | None =
     mask paths relative to the parent of ``out_dir``, i.e. results/<scene>/). ``workers``:
     processes the poses are judged on (the files do not depend on it). ``photo_root``: the
     folder the key frames' ``image`` names are relative to (:func:`gdiff.cameras.image_root`);
-    with it the training photos check the flat evidence and complete the key frames' masks
-    (``compare_paths``' ``photos``).
+    with it the training photos check the flat evidence, confirm objects and complete the key
+    frames' masks (``compare_paths``' ``photos``).
     Pixels whose rendered opacity is below the segmenter's ``alpha_min`` (recorded in
     ``index.json``; :data:`gdiff.segment.base.ALPHA_MIN` when an older index lacks it) show no
     surface and are not judged (``compare_paths``' ``alpha_min``).
@@ -659,7 +682,8 @@ def compare(instances_dir, poses_json, out_dir, options: CompareOptions | None =
 
     photos = None
     o = options or CompareOptions()
-    if photo_root is not None and (o.flat_photo_contrast > 0 or o.complete_reach > 0):
+    if photo_root is not None and (o.flat_photo_contrast > 0 or o.complete_reach > 0
+                                   or o.confirm_photo > 0):
         photos = {}
         for (p, i), t in sorted(keys.items()):
             image, depth = meta[p][i].get("image"), keyed[(p, TIMES[t], i)].get("depth")

@@ -141,8 +141,8 @@ def key_differences(get, keys: dict[tuple[str, int], int], photos: dict
                     ) -> dict[tuple[str, int], tuple[np.ndarray, float]]:
     """Per key frame that has a photo and a render at both times: the photo's distance to the
     other time's render (:func:`difference`, [H, W]) and the floor below which it does not
-    count (:func:`noise_floor`). ``get``, ``keys`` and ``photos`` as in
-    :func:`complete_key_masks`."""
+    count (:func:`noise_floor`). ``get`` and ``keys`` as in :func:`complete_key_masks`;
+    ``photos[(path, i)]`` the key frame's photo, linear RGB float32 at the frame's size."""
     out = {}
     for (p, i), t in sorted(keys.items()):
         if (p, i) not in photos:
@@ -159,21 +159,18 @@ def key_differences(get, keys: dict[tuple[str, int], int], photos: dict
     return out
 
 
-def complete_key_masks(masks: dict, get, keys: dict[tuple[str, int], int], photos: dict,
-                       reach: float, alpha_min: float, known: dict | None = None,
-                       diffs: dict | None = None) -> tuple[int, int, int]:
+def complete_key_masks(masks: dict, get, keys: dict[tuple[str, int], int], diffs: dict,
+                       reach: float, alpha_min: float, known: dict | None = None
+                       ) -> tuple[int, int, int]:
     """Complete in place the masks of every key frame that has a photo (module docstring).
 
     ``masks[(path, i)] = (mask_t0, mask_t1)``; ``get((path, "t0" | "t1", i))`` the rendered
     frame dict (``rgb`` sRGB, optional ``alpha``); ``keys[(path, i)]`` the key frame's time;
-    ``photos[(path, i)]`` its photo, linear RGB float32 at the frame's size; ``known[(path,
-    i)]`` (optional) bool [H, W], the pixels whose depth is observed at both times
-    (:func:`gdiff.compare.coverage.observed`): never added. ``diffs``: :func:`key_differences`
-    of these arguments when the caller has them already. Returns (key frames completed, pieces
-    grown, pixels added)."""
+    ``diffs``: :func:`key_differences` of the key frames' photos (a key frame without an
+    entry is left as it is); ``known[(path, i)]`` (optional) bool [H, W], the pixels whose
+    depth is observed at both times (:func:`gdiff.compare.coverage.observed`): never added.
+    Returns (key frames completed, pieces grown, pixels added)."""
     done = pieces = added = 0
-    if diffs is None:
-        diffs = key_differences(get, keys, photos)
     for (p, i), t in sorted(keys.items()):
         if (p, i) not in masks or (p, i) not in diffs:
             continue

@@ -295,8 +295,8 @@ def compare_paths(ids: dict[Key, np.ndarray], frames: dict[Key, dict] | None,
             log.info("key views: not completed from the photos: the light changed, and a photo "
                      "differs from the other time's render wherever it did")
         else:
-            n, pieces, added = complete_key_masks(masks, get, keys, photos, o.complete_reach,
-                                                  alpha_min, known, diffs)
+            n, pieces, added = complete_key_masks(masks, get, keys, diffs, o.complete_reach,
+                                                  alpha_min, known)
             log.info("key views: %d pieces of changes grown by %d pixels over %d key frames, "
                      "where the training photo differs from the other time's render next to "
                      "them (compare.complete_reach = %g)", pieces, added, n, o.complete_reach)
@@ -377,11 +377,11 @@ def _spread(masks, ids: dict[Key, np.ndarray], get, keys: dict[tuple[str, int], 
              len(voxels[0]), len(voxels[1]), 100 * o.spread_vote, added, len(poses))
 
 
-def _id_counts(ids: dict[Key, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
-    """Two zeroed int64 counters indexed by ID value (every ID of ``ids``): pixels of an ID,
+def _id_counts(ids: dict[Key, np.ndarray], n: int = 2) -> list[np.ndarray]:
+    """``n`` zeroed int64 counters indexed by ID value (every ID of ``ids``): pixels of an ID,
     and those of them that pass a test."""
     size = int(max(int(m.max()) for m in ids.values())) + 1
-    return np.zeros(size, np.int64), np.zeros(size, np.int64)
+    return [np.zeros(size, np.int64) for _ in range(n)]
 
 
 def _pool_instances(df: pd.DataFrame, column: str, total: np.ndarray, hits: np.ndarray,
@@ -450,8 +450,7 @@ def _photo_support(df: pd.DataFrame, ids: dict[Key, np.ndarray], keys: dict[tupl
     ch = df.index[df["changed"]]
     if len(ch) == 0 or not diffs:
         return
-    total, above = _id_counts(ids)
-    total_o, above_o = _id_counts(ids)
+    total, above, total_o, above_o = _id_counts(ids, 4)
     size = len(total)
     for (p, i), (d, floor) in sorted(diffs.items()):
         t = int(keys[(p, i)])
@@ -525,8 +524,8 @@ def _confirm_by_evidence(df: pd.DataFrame, o: CompareOptions, band: int,
     inst = df.loc[ch, "instance"].to_numpy()
     colour = np.nan_to_num(df.loc[ch, "colour"].to_numpy(float))  # NaN only where n_colour 0
     weight = df.loc[ch, "n_colour"].to_numpy(float)
-    photo = (df.loc[ch, "photo"].to_numpy(float) if "photo" in df
-             else np.full(len(ch), np.nan))
+    # per changed ID, its instance's photo shares (NaN where not measured)
+    photo = df.reindex(columns=["photo", "photo_other"]).loc[ch].to_numpy(float)
     by_photo = o.confirm_photo > 0 and not light_changed
     drop, rows = [], []
     for v in np.unique(inst):
@@ -534,9 +533,7 @@ def _confirm_by_evidence(df: pd.DataFrame, o: CompareOptions, band: int,
         support = float(df.loc[ch[sel], "support"].iloc[0])
         w = weight[sel]
         col = float((colour[sel] * w).sum() / w.sum()) if w.sum() else np.nan
-        pho = float(photo[sel][0])
-        phx = (float(df.loc[ch[sel], "photo_other"].iloc[0]) if "photo_other" in df
-               else np.nan)
+        pho, phx = photo[sel][0]
         # the photo's word counts for an object confirmed at more than one pose: one pose's
         # render, against the photo next to it, may differ where the fit is poor
         several = int(df.loc[ch[sel], "n_confirmed"].max()) >= 2

@@ -207,7 +207,7 @@ def test_stage_files(demo_paths, tmp_path, monkeypatch):
     cand = pd.read_csv(res / "change" / "candidates.csv")
     assert list(cand.columns) == ["instance", "ids", "types", "n_t0", "n_t1", "n_confirmed",
                                   "area", "x", "y", "z", "size", "support", "colour", "photo",
-                                  "photo_other", "verdict"]
+                                  "photo_other", "photo_points", "verdict"]
     assert {"x", "y", "z", "size"} <= set(ch.columns)
     kept = cand[cand["verdict"] != "dropped"]
     assert set(kept["instance"]) == set(ch["instance"])
@@ -1300,6 +1300,85 @@ def test_view_means_count_only_the_surface_a_photo_shows():
     m0, m1 = view_means(pts[behind], [KeyPhoto(0, cam, z, photo),
                                       KeyPhoto(1, cam, covered, photo)], tol=0.1)
     assert len(m0) == 1 and m1 == []  # hidden behind the box at t1
+
+
+def test_colour_is_not_believed_where_the_photos_of_both_visits_show_the_same_points_alike():
+    """A red box is put in front of a textured wall between the visits. At the after visit's
+    key poses the ID comparison keeps two objects by their rendered colours: the box, and a
+    patch of wall the before model renders as a smeared guess from there (its colours differ
+    from the after render's). Looked up in the before photos, the box's surface points show
+    the wall behind it, unlike the after photo; the patch's points show the same wall as the
+    after photo, no more differently than the rest of the wall: the patch is dropped, the box
+    kept. A box that stood there at both visits is dropped too; with the test off, or under a
+    change of light, the colours decide as before."""
+    from gdiff.compare.photos import KeyPhoto
+
+    rng = np.random.default_rng(5)
+
+    def shot(cam, box, time):
+        z = _box_scene_depth(cam, box)
+        rgb = _wall_rgb(cam, z)
+        rgb[z < 5.0] = (0.8, 0.1, 0.1)
+        noise = rng.normal(0, 0.01, rgb.shape).astype(np.float32)
+        return z, srgb_to_linear(np.clip(rgb + noise, 0, 1))
+
+    def judged(box_before, light_changed=False, **kw):
+        o = CompareOptions(**kw)
+        keys, frames, photos, ids = {}, {}, {}, {}
+        for i, x in enumerate(np.linspace(-1.0, 1.0, 8)):
+            t = i % 2  # even poses: before photos, odd: after photos
+            cam = _wall_camera(float(x))
+            z, photos[("p1", i)] = shot(cam, box_before or t == 1, t)
+            keys[("p1", i)] = t
+            frames[("p1", ("t0", "t1")[t], i)] = dict(depth=z, camera=cam)
+            m = np.ones(z.shape, np.int32)
+            if t == 1:
+                m[z < 5.0] = 2  # the box
+                m[10:40, 120:150] = 3  # the smeared patch of wall
+            ids[("p1", ("t0", "t1")[t], i)] = m
+            ids[("p1", ("t0", "t1")[1 - t], i)] = np.ones(z.shape, np.int32)
+        key_photos = cmp_stage._key_photos(frames.get, keys, photos)
+        df = pd.DataFrame(dict(id=[1, 2, 3], changed=[False, True, True],
+                               type=["", "added", "added"], instance=[0, 2, 3],
+                               colour=[np.nan, 0.6, 0.6], n_colour=[0, 1, 1],
+                               n_t0=[8, 0, 0], n_t1=[8, 4, 4], n_confirmed=[0, 1, 1],
+                               area=[1.0, 2000, 900], support=[np.nan, 0.0, 0.0],
+                               **{c: [0.0] * 3 for c in ("x", "y", "z", "size")}))
+        if o.confirm_colour_points > 0 and not light_changed:
+            cmp_stage._photo_points(df, ids, keys, frames.get, photos, key_photos, o)
+        cmp_stage._confirm_by_evidence(df, o, 8, light_changed)
+        return df.attrs["candidates"].set_index("instance")
+
+    cand = judged(False)
+    assert cand.at[2, "photo_points"] > 0.8 and cand.at[2, "verdict"] == "kept: colour"
+    assert cand.at[3, "photo_points"] < 0.2 and cand.at[3, "verdict"] == "dropped"
+    cand = judged(True)  # the box stood there at the before visit too
+    assert cand.at[2, "photo_points"] < 0.2 and cand.at[2, "verdict"] == "dropped"
+    for kw in (dict(confirm_colour_points=0.0), dict(light_changed=True)):
+        cand = judged(False, **kw)
+        assert (cand["verdict"] == "kept: colour").all(), kw
+
+
+def test_point_lookup_reference_is_local_and_outlines_are_left_out():
+    """The reference of the per-point photo test is taken around each pixel: where the
+    lookup is poorer (half of the view, larger differences on unchanged surface) the cut is
+    higher there only. And an ID's outline does not count."""
+    from gdiff.compare.photos import _local_cut, interior
+
+    rng = np.random.default_rng(2)
+    H, W = 60, 80
+    pix = np.arange(H * W)
+    cols = pix % W
+    values = np.where(cols < 40, 0.1, 1.0) + rng.normal(0, 0.02, H * W)
+    cut = _local_cut(pix, values, (H, W), 0.125, 0.9, fallback=-1.0).reshape(H, W)
+    inner = cut[6:-6]  # away from the corners (fewer than 50 values around them)
+    assert 0.1 < inner[:, :30].max() < 0.2 and 1.0 < inner[:, 50:].min() < 1.1
+    assert (_local_cut(pix[:10], values[:10], (H, W), 0.125, 0.9, fallback=-1.0) == -1).all()
+    ids = np.zeros((H, W), np.int32)
+    ids[10:30, 10:40] = 7
+    inner = interior(ids, 2)
+    assert inner[14:26, 14:36].all() and not inner[10, 10:40].any()
+    assert interior(ids, 0).all()
 
 
 def test_moving_light_with_no_object_change_gives_no_change():

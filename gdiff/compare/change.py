@@ -161,6 +161,13 @@ class CompareOptions:
         both times show count; and the ID comparison confirmed it at two poses or more). Not
         when the light changed (a photo then differs from the other time's render wherever
         the light did). 0: off.
+    confirm_colour_points: an object kept by its colour alone (``confirm_colour``) is dropped
+        when fewer than this share of its surface points at the key poses of its own time look
+        different in the other visit's photos, against the unchanged surface of the same
+        photos (``photo_points`` of the changes table,
+        :func:`gdiff.compare.stage._photo_points`): the rendered colours of the other time at
+        a pose its photos did not see are a guess, the photos are not. Not when the light
+        changed. 0: off.
     surround_width: width of the ring around a region whose mean colour stands for the local
         light in :func:`surround_colour_change`, as a fraction of the image's longer side.
     spread_vote: a changed object's surface is marked at every pose, also where the segmenter
@@ -205,6 +212,7 @@ class CompareOptions:
     confirm_support: float = 0.5
     confirm_colour: float = 0.25
     confirm_photo: float = 2.0
+    confirm_colour_points: float = 0.2
     surround_width: float = 0.05
     spread_vote: float = 0.3
     complete_reach: float = 1.0
@@ -234,6 +242,8 @@ class CompareOptions:
             raise ConfigError("config key 'compare.confirm_colour' must lie in [0, 2]")
         if self.confirm_photo < 0:
             raise ConfigError("config key 'compare.confirm_photo' must be >= 0")
+        if not 0 <= self.confirm_colour_points <= 1:
+            raise ConfigError("config key 'compare.confirm_colour_points' must lie in [0, 1]")
         if not 0 < self.surround_width < 0.5:
             raise ConfigError("config key 'compare.surround_width' must lie in (0, 0.5)")
         if not 0 < self.flat_max_rate <= 1:

@@ -25,6 +25,9 @@ from __future__ import annotations
 from dataclasses import dataclass
 from pathlib import Path
 
+from statistics import NormalDist
+
+import cv2
 import numpy as np
 
 from ..io import read_image_sized, srgb_to_linear
@@ -145,3 +148,114 @@ def region_photos_differ(region: np.ndarray, points: tuple[np.ndarray, np.ndarra
                                 [k for k in photos if k.time == t],
                                 depth_tol * float(np.median(z)))[t])
     return photos_differ(means[0], means[1], contrast)
+
+
+def _log_chroma(rgb: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Log brightness [...] and chromaticity [..., 3] (r, g, b over their sum) of linear RGB."""
+    c = np.maximum(np.asarray(rgb, np.float32), 1e-4)
+    s = c.sum(-1)
+    return np.log(s / 3 + 0.02), c / s[..., None]
+
+
+def interior(ids: np.ndarray, rim: int) -> np.ndarray:
+    """bool [H, W]: pixels of the ID map ``ids`` int [H, W] whose ID fills the disc of radius
+    ``rim`` pixels around them (each ID's mask eroded by ``rim``; all True when ``rim`` is 0)."""
+    if rim <= 0:
+        return np.ones(ids.shape, bool)
+    k = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * rim + 1,) * 2)
+    m = np.asarray(ids, np.float32)  # exact for IDs below 2**24
+    return (cv2.erode(m, k, borderType=cv2.BORDER_REPLICATE) == m) & (
+        cv2.dilate(m, k, borderType=cv2.BORDER_REPLICATE) == m)
+
+
+def point_photo_counts(own: KeyPhoto, ids: np.ndarray, changed: np.ndarray,
+                       others: list[KeyPhoto], depth_tol: float, n: int,
+                       quantile: float = 0.9, rim: int = 2, min_reference: int = 200,
+                       window: float = 0.125
+                       ) -> tuple[np.ndarray, np.ndarray]:
+    """How the other time's photos show the surface points of one key photo's IDs.
+
+    ``own``: a training photo and the depth its own time's model renders there (its camera
+    camera-to-world; photo linear RGB [H, W, 3]); ``ids`` int [H, W] the ID map of that time at
+    that pose; ``changed`` bool [n]: the changed IDs. Each pixel's surface point (the rendered
+    depth back-projected) is looked up in every photo of ``others`` (the other time's): where
+    no surface is rendered in front of it there (nearer by more than ``depth_tol`` x its depth),
+    that photo shows what stands at or behind the point at its time, and the point's colour in
+    the two photos is compared (absolute difference of log brightness plus L1 difference of
+    chromaticity). The reference is the unchanged surface of the same pair of photos: the
+    pixels of IDs not ``changed`` that the other photo shows, chosen the same way; their
+    differences come from exposure, view-dependent shading and the fit's depth error, which
+    moves a point off its surface in the other photo as much as a changed ID's point. A
+    changed ID's point counts as *differing* when its difference exceeds the ``quantile`` of
+    the reference's around it (so about 1 - ``quantile`` of an unchanged surface's points
+    differ): within a square of ``window`` x the photo's longer side (:func:`_local_cut`; the
+    fit's depth, and with it the error of the lookup, is worse in some parts of a view than
+    in others, e.g. at its edge, seen by fewer photos), or over the whole photo with
+    ``window`` 0. Only each ID's interior counts (:func:`interior` with ``rim``): on an
+    outline a point projects past the object as often as onto it. A pair with fewer than
+    ``min_reference`` reference pixels is not used.
+
+    Returns int64 [n] counts per ID: its points shown by the other photos (over all of them),
+    and those that differ.
+    """
+    total, above = np.zeros(n, np.int64), np.zeros(n, np.int64)
+    z = np.asarray(own.depth, np.float64)
+    H, W = z.shape
+    if ids.shape != (H, W) or not len(others):
+        return total, above
+    cam = own.camera
+    if (cam.width, cam.height) != (W, H):
+        cam = cam.scaled(W / cam.width)
+    u = (np.arange(W) + 0.5 - cam.cx) / cam.fx
+    v = (np.arange(H) + 0.5 - cam.cy) / cam.fy
+    P = np.stack([u[None, :] * z, v[:, None] * z, z], -1).reshape(-1, 3)
+    P = P @ cam.c2w[:3, :3].T + cam.c2w[:3, 3]
+    flat_ids = np.asarray(ids).ravel()
+    ok = np.isfinite(z).ravel() & (z.ravel() > 0) & (flat_ids > 0) & (flat_ids < n)
+    is_changed = np.zeros(len(flat_ids), bool)
+    is_changed[ok] = changed[flat_ids[ok]]
+    inside = interior(np.asarray(ids), rim).ravel()
+    lum, chroma = _log_chroma(own.photo)
+    lum, chroma = lum.ravel(), chroma.reshape(-1, 3)
+    for kp in others:
+        oc = kp.camera
+        h, w = kp.depth.shape
+        if (oc.width, oc.height) != (w, h):
+            oc = oc.scaled(w / oc.width)
+        idx, zz, row, col = project_to_depth(P, ok, DepthView(oc, kp.depth))
+        d = np.asarray(kp.depth, np.float64)[row, col]
+        surf = np.isfinite(d) & (d > 0)
+        tol = depth_tol * z.ravel()[idx]
+        shown = ~(surf & (d < zz - tol))
+        l2, c2 = _log_chroma(np.asarray(kp.photo)[row, col])
+        diff = np.abs(lum[idx] - l2) + np.abs(chroma[idx] - c2).sum(-1)
+        ref = shown & ~is_changed[idx]
+        if ref.sum() < min_reference:
+            continue
+        cut = np.quantile(diff[ref], quantile)
+        if window > 0:
+            cut = _local_cut(idx[ref], diff[ref], (H, W), window, quantile, cut)[idx]
+        sel = shown & is_changed[idx] & inside[idx]
+        total += np.bincount(flat_ids[idx[sel]], minlength=n)
+        above += np.bincount(flat_ids[idx[sel & (diff > cut)]], minlength=n)
+    return total, above
+
+
+def _local_cut(pix: np.ndarray, values: np.ndarray, shape: tuple[int, int], window: float,
+               quantile: float, fallback: float) -> np.ndarray:
+    """float [H * W]: per pixel of an H x W image, the ``quantile`` of the ``values`` (float
+    [K], at the flat pixel indices ``pix``) around it, within a square of ``window`` x the
+    image's longer side: that of a normal distribution with their mean and standard deviation
+    there. ``fallback`` where fewer than 50 values lie in the square."""
+    H, W = shape
+    k = max(3, int(round(window * max(H, W))) | 1)
+    a = np.zeros(H * W, np.float32)
+    b = np.zeros(H * W, np.float32)
+    c = np.zeros(H * W, np.float32)
+    a[pix], b[pix], c[pix] = values, values.astype(np.float32) ** 2, 1.0
+    a, b, c = (cv2.boxFilter(x.reshape(H, W), -1, (k, k), normalize=False,
+                             borderType=cv2.BORDER_CONSTANT).ravel() for x in (a, b, c))
+    ok = c >= 50
+    mean = np.where(ok, a / np.maximum(c, 1), 0)
+    std = np.sqrt(np.maximum(np.where(ok, b / np.maximum(c, 1), 0) - mean ** 2, 0))
+    return np.where(ok, mean + NormalDist().inv_cdf(quantile) * std, fallback)

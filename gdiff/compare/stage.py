@@ -38,7 +38,8 @@ from .complete import complete_key_masks, key_differences
 from .coverage import DepthView, observed, surface
 from .geometry import (GeometryEvidence, flat_flags, pixel_scale, pose_flags, pose_record,
                        write_evidence)
-from .photos import KeyPhoto, alike_components, load_photo, region_photos_differ
+from .photos import (KeyPhoto, alike_components, load_photo, point_photo_counts,
+                     region_photos_differ)
 from .spread import count_voxels, object_voxels, spread_masks, voxel_keys
 
 log = logging.getLogger("gdiff.compare")
@@ -256,11 +257,13 @@ def compare_paths(ids: dict[Key, np.ndarray], frames: dict[Key, dict] | None,
                     band)
         if o.confirm_photo > 0:
             _photo_support(df, ids, keys, diffs, o.confirm_photo, o.min_area, shown)
+        if o.confirm_colour_points > 0 and key_photos and not light_changed:
+            _photo_points(df, ids, keys, get, photos, key_photos, o)
         if o.confirm_support > 0:
             _confirm_by_evidence(df, o, band, light_changed)
     else:
         df["support"] = np.nan
-    for c in ("photo", "photo_other"):  # the same columns in changes.csv whatever was asked
+    for c in ("photo", "photo_other", "photo_points"):  # the same columns whatever was asked
         if c not in df:
             df[c] = np.nan
     _replaced(df, o)
@@ -468,13 +471,49 @@ def _photo_support(df: pd.DataFrame, ids: dict[Key, np.ndarray], keys: dict[tupl
     _pool_instances(df, "photo_other", total_o, above_o, min_px)
 
 
+def _photo_points(df: pd.DataFrame, ids: dict[Key, np.ndarray], keys: dict[tuple[str, int], int],
+                  get, photos: dict, key_photos: list[KeyPhoto], o: CompareOptions) -> None:
+    """Column ``photo_points`` (in place): per changed object (an ``instance``, all its IDs
+    together), the share of its surface points at the key poses of its own time that the
+    other time's photos show differently from the key photo, more than nine in ten points of
+    the unchanged surface of the same pair of photos are
+    (:func:`gdiff.compare.photos.point_photo_counts`). The same 3D points in the photos of
+    both visits: an object still standing shows there as itself, however poorly the other
+    time's model renders it from this pose; one added or removed shows what it stands in
+    front of or what it covered. NaN for unchanged IDs and for objects with fewer than
+    ``o.min_area`` such points. ``get``: key -> frame dict; ``photos[(path, i)]`` the key
+    frames' photos and ``key_photos`` all of them (:func:`_key_photos`)."""
+    df["photo_points"] = np.nan
+    ch = df.index[df["changed"]]
+    if len(ch) == 0:
+        return
+    n = int(max(int(m.max()) for m in ids.values())) + 1
+    changed = np.zeros(n, bool)
+    changed[df.loc[ch, "id"].to_numpy(np.int64)] = True
+    total, above = np.zeros(n, np.int64), np.zeros(n, np.int64)
+    for (p, i), t in sorted(keys.items()):
+        kp = _key_photos(get, {(p, i): t}, photos)
+        if not kp:
+            continue
+        kp = kp[0]
+        m = ids.get((p, TIMES[kp.time], i))
+        if m is None:
+            continue
+        tot, ab = point_photo_counts(kp, m, changed, [k for k in key_photos if k.time != kp.time],
+                                     o.observed_depth_tol, n)
+        total += tot
+        above += ab
+    _pool_instances(df, "photo_points", total, above, o.min_area)
+
+
 CANDIDATE_COLUMNS = ["instance", "ids", "types", "n_t0", "n_t1", "n_confirmed", "area",
-                     "x", "y", "z", "size", "support", "colour", "photo", "photo_other", "verdict"]
+                     "x", "y", "z", "size", "support", "colour", "photo", "photo_other",
+                     "photo_points", "verdict"]
 
 
 def _candidate_row(instance: int, members: pd.DataFrame, support: float, colour: float,
                    verdict: str, photo: float = float("nan"),
-                   photo_other: float = float("nan")) -> dict:
+                   photo_other: float = float("nan"), photo_points: float = float("nan")) -> dict:
     """One row of ``candidates.csv`` (:data:`CANDIDATE_COLUMNS`) for a changed object made of
     the table rows ``members``: its counts, area, place and size are its largest member's."""
     head = members.loc[members["area"].idxmax()]
@@ -483,7 +522,7 @@ def _candidate_row(instance: int, members: pd.DataFrame, support: float, colour:
                 n_t1=int(head["n_t1"]), n_confirmed=int(head["n_confirmed"]),
                 area=float(head["area"]), **{c: float(head[c]) for c in ("x", "y", "z", "size")},
                 support=support, colour=colour, photo=photo, photo_other=photo_other,
-                verdict=verdict)
+                photo_points=photo_points, verdict=verdict)
 
 
 def _confirm_by_evidence(df: pd.DataFrame, o: CompareOptions, band: int,
@@ -504,7 +543,10 @@ def _confirm_by_evidence(df: pd.DataFrame, o: CompareOptions, band: int,
     surroundings changed by at least ``o.confirm_colour`` (per ID,
     :func:`gdiff.compare.change.surround_colour_change`; pooled over the instance weighted by
     ``n_colour``): an object swapped for one of the same shape and size changes no depth, but
-    its own colour. With the light unchanged, it is also kept when the training photos show it
+    its own colour, unless the photos of both visits show its surface points alike
+    (``photo_points`` below ``o.confirm_colour_points``, :func:`_photo_points`): the other
+    time's rendered colours at a pose its photos did not see are a guess. With the light
+    unchanged, it is also kept when the training photos show it
     changed both ways (``photo`` and ``photo_other``, :func:`_photo_support`, each at least
     one half; ``o.confirm_photo`` > 0) and the ID comparison confirmed it at two poses or more:
     on a sparse capture neither the depth nor the rendered colours may tell a grey mug on a
@@ -525,28 +567,32 @@ def _confirm_by_evidence(df: pd.DataFrame, o: CompareOptions, band: int,
     colour = np.nan_to_num(df.loc[ch, "colour"].to_numpy(float))  # NaN only where n_colour 0
     weight = df.loc[ch, "n_colour"].to_numpy(float)
     # per changed ID, its instance's photo shares (NaN where not measured)
-    photo = df.reindex(columns=["photo", "photo_other"]).loc[ch].to_numpy(float)
+    photo = df.reindex(columns=["photo", "photo_other", "photo_points"]).loc[ch].to_numpy(float)
     by_photo = o.confirm_photo > 0 and not light_changed
-    drop, rows = [], []
+    drop, rows, n_alike = [], [], 0
     for v in np.unique(inst):
         sel = inst == v
         support = float(df.loc[ch[sel], "support"].iloc[0])
         w = weight[sel]
         col = float((colour[sel] * w).sum() / w.sum()) if w.sum() else np.nan
-        pho, phx = photo[sel][0]
+        pho, phx, pts = photo[sel][0]
+        # its colour counts unless the photos of both visits show its points alike
+        alike = o.confirm_colour_points > 0 and pts < o.confirm_colour_points
         # the photo's word counts for an object confirmed at more than one pose: one pose's
         # render, against the photo next to it, may differ where the fit is poor
         several = int(df.loc[ch[sel], "n_confirmed"].max()) >= 2
         verdict = ("kept: 3D" if support >= o.confirm_support else
-                   "kept: colour" if col >= o.confirm_colour else
+                   "kept: colour" if col >= o.confirm_colour and not alike else
                    "kept: photo" if by_photo and several and pho >= 0.5 and phx >= 0.5
                    else "dropped")
+        n_alike += verdict == "dropped" and col >= o.confirm_colour
         log.debug("instance %d: %.2f of its pixels near a change in 3D, colour change %.2f, "
                   "%.2f / %.2f shown changed by the photos of its own / the other time: %s", v,
                   support, col, pho, phx, verdict)
         if verdict == "dropped":
             drop.extend(ch[sel])
-        rows.append(_candidate_row(int(v), df.loc[ch[sel]], support, col, verdict, pho, phx))
+        rows.append(_candidate_row(int(v), df.loc[ch[sel]], support, col, verdict, pho, phx,
+                                   pts))
     df.attrs["candidates"] = pd.DataFrame(rows, columns=CANDIDATE_COLUMNS)
     n = len(np.unique(inst))
     n_photo = sum(r["verdict"] == "kept: photo" for r in rows)
@@ -560,6 +606,10 @@ def _confirm_by_evidence(df: pd.DataFrame, o: CompareOptions, band: int,
              f"the other time's render by >= {o.confirm_photo:g} x the photo's noise floor, "
              f"at the key poses of both times)"
              if by_photo else "", len(drop))
+    if n_alike:
+        log.info("%d objects whose colour changed were dropped: fewer than %.0f %% of their "
+                 "surface points look different in the photos of the other visit "
+                 "(compare.confirm_colour_points)", n_alike, 100 * o.confirm_colour_points)
     df.loc[drop, "changed"] = False
     df.loc[drop, "type"] = ""
     df.loc[drop, "instance"] = 0

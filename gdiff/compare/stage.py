@@ -492,15 +492,12 @@ def _photo_points(df: pd.DataFrame, ids: dict[Key, np.ndarray], keys: dict[tuple
     changed[df.loc[ch, "id"].to_numpy(np.int64)] = True
     total, above = np.zeros(n, np.int64), np.zeros(n, np.int64)
     for (p, i), t in sorted(keys.items()):
-        kp = _key_photos(get, {(p, i): t}, photos)
-        if not kp:
+        own = _key_photos(get, {(p, i): t}, photos)  # this key frame's photo, if it has one
+        m = ids.get((p, TIMES[int(t)], i))
+        if not own or m is None:
             continue
-        kp = kp[0]
-        m = ids.get((p, TIMES[kp.time], i))
-        if m is None:
-            continue
-        tot, ab = point_photo_counts(kp, m, changed, [k for k in key_photos if k.time != kp.time],
-                                     o.observed_depth_tol, n)
+        others = [k for k in key_photos if k.time != int(t)]
+        tot, ab = point_photo_counts(own[0], m, changed, others, o.observed_depth_tol, n)
         total += tot
         above += ab
     _pool_instances(df, "photo_points", total, above, o.min_area)
@@ -587,8 +584,9 @@ def _confirm_by_evidence(df: pd.DataFrame, o: CompareOptions, band: int,
                    else "dropped")
         n_alike += verdict == "dropped" and col >= o.confirm_colour
         log.debug("instance %d: %.2f of its pixels near a change in 3D, colour change %.2f, "
-                  "%.2f / %.2f shown changed by the photos of its own / the other time: %s", v,
-                  support, col, pho, phx, verdict)
+                  "%.2f / %.2f shown changed by the photos of its own / the other time, %.2f of "
+                  "its points by the other time's photos: %s", v, support, col, pho, phx, pts,
+                  verdict)
         if verdict == "dropped":
             drop.extend(ch[sel])
         rows.append(_candidate_row(int(v), df.loc[ch[sel]], support, col, verdict, pho, phx,

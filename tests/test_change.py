@@ -1345,7 +1345,7 @@ def test_colour_is_not_believed_where_the_photos_of_both_visits_show_the_same_po
                                area=[1.0, 2000, 900], support=[np.nan, 0.0, 0.0],
                                **{c: [0.0] * 3 for c in ("x", "y", "z", "size")}))
         if o.confirm_colour_points > 0 and not light_changed:
-            cmp_stage._photo_points(df, ids, keys, frames.get, photos, key_photos, o)
+            cmp_stage._photo_points(df, ids, key_photos, o)
         cmp_stage._confirm_by_evidence(df, o, 8, light_changed)
         return df.attrs["candidates"].set_index("instance")
 

@@ -24,13 +24,13 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
-
 from statistics import NormalDist
 
 import cv2
 import numpy as np
 
 from ..io import read_image_sized, srgb_to_linear
+from ..track import world_points
 from .coverage import DepthView, project_to_depth
 
 
@@ -46,11 +46,19 @@ class KeyPhoto:
     """One training photo: ``time`` (0 or 1), ``camera`` (:class:`gdiff.cameras.Camera`,
     camera-to-world), ``depth`` float [H, W] the z-depth rendered from the model at this camera
     and time (NaN or <= 0: no surface) and ``photo`` float32 [H, W, 3] linear RGB, at the
-    camera's size."""
+    camera's size; ``pose`` (optional) the key frame ``(path, i)`` it was taken at."""
     time: int
     camera: object
     depth: np.ndarray
     photo: np.ndarray
+    pose: tuple[str, int] | None = None
+
+    def depth_camera(self):
+        """The camera at the size of ``depth`` (scaled when the frame was rendered at
+        another size)."""
+        h, w = np.shape(self.depth)
+        c = self.camera
+        return c if (c.width, c.height) == (w, h) else c.scaled(w / c.width)
 
 
 def load_photo(path: str | Path, width: int, height: int) -> np.ndarray:
@@ -68,11 +76,7 @@ def view_means(points: np.ndarray, photos: list[KeyPhoto], tol: float, min_point
     P = np.asarray(points, np.float64)
     finite = np.isfinite(P).all(-1)
     for kp in photos:
-        cam = kp.camera
-        h, w = kp.depth.shape
-        if (cam.width, cam.height) != (w, h):  # a frame rendered at another size
-            cam = cam.scaled(w / cam.width)
-        _, z, row, col = project_to_depth(P, finite, DepthView(cam, kp.depth))
+        _, z, row, col = project_to_depth(P, finite, DepthView(kp.depth_camera(), kp.depth))
         d = np.asarray(kp.depth)[row, col]
         on = np.isfinite(d) & (d > 0) & (np.abs(d - z) <= tol)
         if on.sum() < min_points:
@@ -203,13 +207,7 @@ def point_photo_counts(own: KeyPhoto, ids: np.ndarray, changed: np.ndarray,
     H, W = z.shape
     if ids.shape != (H, W) or not len(others):
         return total, above
-    cam = own.camera
-    if (cam.width, cam.height) != (W, H):
-        cam = cam.scaled(W / cam.width)
-    u = (np.arange(W) + 0.5 - cam.cx) / cam.fx
-    v = (np.arange(H) + 0.5 - cam.cy) / cam.fy
-    P = np.stack([u[None, :] * z, v[:, None] * z, z], -1).reshape(-1, 3)
-    P = P @ cam.c2w[:3, :3].T + cam.c2w[:3, 3]
+    P = world_points(z, own.depth_camera()).reshape(-1, 3)
     flat_ids = np.asarray(ids).ravel()
     ok = np.isfinite(z).ravel() & (z.ravel() > 0) & (flat_ids > 0) & (flat_ids < n)
     is_changed = np.zeros(len(flat_ids), bool)
@@ -218,11 +216,7 @@ def point_photo_counts(own: KeyPhoto, ids: np.ndarray, changed: np.ndarray,
     lum, chroma = _log_chroma(own.photo)
     lum, chroma = lum.ravel(), chroma.reshape(-1, 3)
     for kp in others:
-        oc = kp.camera
-        h, w = kp.depth.shape
-        if (oc.width, oc.height) != (w, h):
-            oc = oc.scaled(w / oc.width)
-        idx, zz, row, col = project_to_depth(P, ok, DepthView(oc, kp.depth))
+        idx, zz, row, col = project_to_depth(P, ok, DepthView(kp.depth_camera(), kp.depth))
         d = np.asarray(kp.depth, np.float64)[row, col]
         surf = np.isfinite(d) & (d > 0)
         tol = depth_tol * z.ravel()[idx]

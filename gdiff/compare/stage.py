@@ -69,7 +69,7 @@ def _key_photos(get, keys: dict[tuple[str, int], int], photos: dict) -> list[Key
     for (p, i), t in sorted(keys.items()):
         f = get((p, TIMES[int(t)], i)) if (p, i) in photos else {}
         if f.get("depth") is not None and f.get("camera") is not None:
-            out.append(KeyPhoto(int(t), f["camera"], f["depth"], photos[(p, i)]))
+            out.append(KeyPhoto(int(t), f["camera"], f["depth"], photos[(p, i)], (p, i)))
     return out
 
 
@@ -258,7 +258,7 @@ def compare_paths(ids: dict[Key, np.ndarray], frames: dict[Key, dict] | None,
         if o.confirm_photo > 0:
             _photo_support(df, ids, keys, diffs, o.confirm_photo, o.min_area, shown)
         if o.confirm_colour_points > 0 and key_photos and not light_changed:
-            _photo_points(df, ids, keys, get, photos, key_photos, o)
+            _photo_points(df, ids, key_photos, o)
         if o.confirm_support > 0:
             _confirm_by_evidence(df, o, band, light_changed)
     else:
@@ -471,8 +471,8 @@ def _photo_support(df: pd.DataFrame, ids: dict[Key, np.ndarray], keys: dict[tupl
     _pool_instances(df, "photo_other", total_o, above_o, min_px)
 
 
-def _photo_points(df: pd.DataFrame, ids: dict[Key, np.ndarray], keys: dict[tuple[str, int], int],
-                  get, photos: dict, key_photos: list[KeyPhoto], o: CompareOptions) -> None:
+def _photo_points(df: pd.DataFrame, ids: dict[Key, np.ndarray], key_photos: list[KeyPhoto],
+                  o: CompareOptions) -> None:
     """Column ``photo_points`` (in place): per changed object (an ``instance``, all its IDs
     together), the share of its surface points at the key poses of its own time that the
     other time's photos show differently from the key photo, more than nine in ten points of
@@ -481,23 +481,21 @@ def _photo_points(df: pd.DataFrame, ids: dict[Key, np.ndarray], keys: dict[tuple
     both visits: an object still standing shows there as itself, however poorly the other
     time's model renders it from this pose; one added or removed shows what it stands in
     front of or what it covered. NaN for unchanged IDs and for objects with fewer than
-    ``o.min_area`` such points. ``get``: key -> frame dict; ``photos[(path, i)]`` the key
-    frames' photos and ``key_photos`` all of them (:func:`_key_photos`)."""
+    ``o.min_area`` such points. ``key_photos``: the key frames' photos (:func:`_key_photos`)."""
     df["photo_points"] = np.nan
     ch = df.index[df["changed"]]
     if len(ch) == 0:
         return
-    n = int(max(int(m.max()) for m in ids.values())) + 1
-    changed = np.zeros(n, bool)
+    total, above = _id_counts(ids)
+    changed = np.zeros(len(total), bool)
     changed[df.loc[ch, "id"].to_numpy(np.int64)] = True
-    total, above = np.zeros(n, np.int64), np.zeros(n, np.int64)
-    for (p, i), t in sorted(keys.items()):
-        own = _key_photos(get, {(p, i): t}, photos)  # this key frame's photo, if it has one
-        m = ids.get((p, TIMES[int(t)], i))
-        if not own or m is None:
+    for own in key_photos:
+        p, i = own.pose
+        m = ids.get((p, TIMES[own.time], i))
+        if m is None:
             continue
-        others = [k for k in key_photos if k.time != int(t)]
-        tot, ab = point_photo_counts(own[0], m, changed, others, o.observed_depth_tol, n)
+        others = [k for k in key_photos if k.time != own.time]
+        tot, ab = point_photo_counts(own, m, changed, others, o.observed_depth_tol, len(total))
         total += tot
         above += ab
     _pool_instances(df, "photo_points", total, above, o.min_area)

@@ -1760,6 +1760,40 @@ def test_completion_grows_a_confirmed_piece_into_what_the_photo_shows():
     assert not (part & ~top)[60:].any() and (part & can)[:60].sum() > 0.9 * can[:60].sum()
 
 
+def test_completion_leaves_to_the_other_time_what_its_change_explains():
+    """A before key view: a red can was taken away (its top piece is in the t0 mask) and a
+    blue box put down right next to it (in the t1 mask, the other time's render at this pose
+    shows it). The before photo differs from that render over both; completing the t0 mask
+    covers the can but not the box: the photo differs there because of the other time's
+    change, and the partition would learn the fabric under it as changed at t0."""
+    from gdiff.compare.complete import complete_key_masks, difference, grow_pieces, noise_floor
+
+    rng = np.random.default_rng(1)
+    fabric = _textured(rng)
+    yy, xx = np.mgrid[:120, :160]
+    can = (np.abs(xx - 70) <= 10) & (yy >= 20) & (yy <= 100)
+    box = (xx >= 81) & (xx <= 110) & (yy >= 40) & (yy <= 100)
+    photo = fabric.copy()
+    photo[can] = (0.75, 0.08, 0.1)  # before: the can, and fabric where the box will be
+    other = np.roll(fabric, 1, axis=1)  # after: fabric where the can stood, and the box
+    other[box] = (0.1, 0.15, 0.8)
+    own = cv2.GaussianBlur(photo, (0, 0), 1.2)
+    d_other = difference(photo, other)
+    floor = noise_floor(d_other, difference(photo, own))
+    top = can & (yy <= 60)
+    frames = {("p", "t0", 0): {"rgb": own}, ("p", "t1", 0): {"rgb": other}}
+    masks = {("p", 0): (top.copy(), box.copy())}
+    done, n, added = complete_key_masks(masks, frames.get, {("p", 0): 0},
+                                        {("p", 0): (d_other, floor)}, reach=1.0, alpha_min=0.5)
+    m0, m1 = masks[("p", 0)]
+    assert (done, n) == (1, 1) and added > 0
+    assert (m0 & can).sum() > 0.95 * can.sum()
+    assert not (m0 & box).any() and np.array_equal(m1, box)
+    # the same growth without the other time's mask runs into the box
+    free, _ = grow_pieces(top, d_other, floor, reach=1.0)
+    assert (free & box).sum() > 0.5 * box.sum()
+
+
 def test_completion_joins_the_fragments_of_an_object_and_fills_its_print():
     """A red box with a printed label (dots of the fabric's colours) is added on patterned
     fabric; the segmenter left only specks of it in the mask, a few pixels apart. Grown, the

@@ -30,7 +30,12 @@ then. Where they differ next to a piece of a change, the piece is grown into the
    along that depth, follow the objects already, and what the photo shows differently beside
    them is a shadow the object casts or a surface the other time's object covers, not the
    object.
-   So the step acts where a sparse capture leaves the depth untrusted.
+   So the step acts where a sparse capture leaves the depth untrusted. Nor are the pixels
+   the other time's mask marks at that pose: there the photo differs from the other time's
+   render because of the other time's change (at a before pose, the object put down later
+   stands there in the after render), and the surface the photo shows there did not change.
+   Grown into, it would teach the partition that surface as changed at this time, and
+   rendered from another pose it would show as changed patches beside the new object.
 
 Not under a change of light (the flat evidence's verdict, :mod:`gdiff.compare.geometry`): a
 photo then differs from the other time's render wherever the light did, shadows beside an
@@ -168,8 +173,8 @@ def complete_key_masks(masks: dict, get, keys: dict[tuple[str, int], int], diffs
     frame dict (``rgb`` sRGB, optional ``alpha``); ``keys[(path, i)]`` the key frame's time;
     ``diffs``: :func:`key_differences` of the key frames' photos (a key frame without an
     entry is left as it is); ``known[(path, i)]`` (optional) bool [H, W], the pixels whose
-    depth is observed at both times (:func:`gdiff.compare.coverage.observed`): never added.
-    Returns (key frames completed, pieces grown, pixels added)."""
+    depth is observed at both times (:func:`gdiff.compare.coverage.observed`): never added;
+    neither are the pixels of the other time's mask. Returns (key frames completed, pieces grown, pixels added)."""
     done = pieces = added = 0
     for (p, i), t in sorted(keys.items()):
         if (p, i) not in masks or (p, i) not in diffs:
@@ -188,6 +193,7 @@ def complete_key_masks(masks: dict, get, keys: dict[tuple[str, int], int], diffs
                                        _disc(d_other.shape)) > 0
             valid &= ~trusted
         pair = list(masks[(p, i)])
+        valid &= ~pair[1 - t]  # a difference the other time's change explains
         before = int(pair[t].sum())
         pair[t], n = grow_pieces(pair[t], d_other, floor, reach, valid)
         masks[(p, i)] = tuple(pair)

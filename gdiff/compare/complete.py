@@ -174,7 +174,8 @@ def complete_key_masks(masks: dict, get, keys: dict[tuple[str, int], int], diffs
     ``diffs``: :func:`key_differences` of the key frames' photos (a key frame without an
     entry is left as it is); ``known[(path, i)]`` (optional) bool [H, W], the pixels whose
     depth is observed at both times (:func:`gdiff.compare.coverage.observed`): never added;
-    neither are the pixels of the other time's mask. Returns (key frames completed, pieces grown, pixels added)."""
+    neither are the pixels of the other time's mask. Returns (key frames completed, pieces
+    grown, pixels added)."""
     done = pieces = added = 0
     for (p, i), t in sorted(keys.items()):
         if (p, i) not in masks or (p, i) not in diffs:

@@ -489,13 +489,14 @@ def _photo_points(df: pd.DataFrame, ids: dict[Key, np.ndarray], key_photos: list
     total, above = _id_counts(ids)
     changed = np.zeros(len(total), bool)
     changed[df.loc[ch, "id"].to_numpy(np.int64)] = True
+    by_time = {t: [k for k in key_photos if k.time == t] for t in (0, 1)}
     for own in key_photos:
         p, i = own.pose
         m = ids.get((p, TIMES[own.time], i))
         if m is None:
             continue
-        others = [k for k in key_photos if k.time != own.time]
-        tot, ab = point_photo_counts(own, m, changed, others, o.observed_depth_tol, len(total))
+        tot, ab = point_photo_counts(own, m, changed, by_time[1 - own.time],
+                                     o.observed_depth_tol, len(total))
         total += tot
         above += ab
     _pool_instances(df, "photo_points", total, above, o.min_area)
@@ -508,7 +509,8 @@ CANDIDATE_COLUMNS = ["instance", "ids", "types", "n_t0", "n_t1", "n_confirmed", 
 
 def _candidate_row(instance: int, members: pd.DataFrame, support: float, colour: float,
                    verdict: str, photo: float = float("nan"),
-                   photo_other: float = float("nan"), photo_points: float = float("nan")) -> dict:
+                   photo_other: float = float("nan"), photo_points: float = float("nan")
+                   ) -> dict:
     """One row of ``candidates.csv`` (:data:`CANDIDATE_COLUMNS`) for a changed object made of
     the table rows ``members``: its counts, area, place and size are its largest member's."""
     head = members.loc[members["area"].idxmax()]

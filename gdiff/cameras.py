@@ -27,7 +27,12 @@ plumb-bob / Brown-Conrady coefficients, as in ROS CameraInfo ``D``; or a dict wi
 shared at the top level or per frame. The poses stage undistorts such images once and writes
 pinhole cameras (no ``distortion``) plus ``"image_dir"``: the folder, relative to the
 ``cameras.json``, that holds the undistorted images under the same relative paths (see
-:func:`image_root`); every later stage reads the photos from there.
+:func:`image_root`); every later stage reads the photos from there. Beside it goes
+``photo_cameras.json`` (:data:`PHOTO_CAMERAS`, same layout, per-frame sizes, intrinsics and
+distortion, the registered poses): the cameras of the photos as the user gave them, so that
+what is given in their pixels (box ground truth) can be carried into the images the stages
+use (:func:`gdiff.sfm.undistort.boxes_to_pinhole`). It is written only when the photos were
+undistorted or resampled.
 """
 
 from __future__ import annotations
@@ -42,6 +47,9 @@ from .errors import SceneError
 from .io import read_json, write_json
 
 SETS = ("before", "after", "eval_before", "eval_after")
+#: file name, beside the poses stage's ``cameras.json``, of the photos' own cameras (module
+#: docstring)
+PHOTO_CAMERAS = "photo_cameras.json"
 TRAIN_SETS = ("before", "after")  # the photos a fit (and the points it starts from) may use
 SET_TIME = {"before": 0, "after": 1, "eval_before": 0, "eval_after": 1}
 

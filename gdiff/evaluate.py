@@ -67,11 +67,12 @@ import pandas as pd
 from .baselines import (MethodNotApplicable, Prediction, as_prediction, evidence3d_method,
                         idcompare_method, partition_method, pixel_diff_method,
                         render_diff_method)
-from .cameras import Camera, image_root, load_cameras
+from .cameras import PHOTO_CAMERAS, Camera, image_root, load_cameras
 from .errors import ConfigError, SceneError
 from .io import (imread_upright, read_image, read_image_sized, read_json, read_mask, write_csv,
                  write_image, write_mask)
 from .scene import list_images
+from .sfm.undistort import boxes_to_pinhole
 from .log import progress
 from .metrics import (aggregate, gt_box_cores, gt_box_scores, object_regions, object_scores,
                       score_view)
@@ -156,6 +157,9 @@ class EvalView:
     """Ground-truth boxes float [K, 4] ``x0, y0, x1, y1`` in pixels of ``box_size``, or None."""
     box_size: tuple[int, int] | None = None
     """``(width, height)`` of the image the boxes are given in."""
+    box_px: float = 1.0
+    """Pixels of ``box_size`` per pixel of the photo the boxes were drawn on (not 1 when they
+    were carried into an undistorted or resampled image): ``box_margin`` is in the photo's."""
     image: Path | None = None
     """Box views (no mask): the training image the boxes belong to."""
     _gt: np.ndarray | None = field(default=None, repr=False)
@@ -249,20 +253,21 @@ def find_eval_views(scene_dir: str | Path, cameras_json: str | Path | None = Non
     ``cameras_json`` (the poses stage's ``cameras.json``) supplies the eval cameras: frames of
     set ``eval_after`` (preferred) or ``eval_before`` whose image is the view's image.
     ``original_dir``: the user's scene folder when ``scene_dir`` is the poses stage's copy of
-    the images (undistorted photos); ``eval/boxes.json`` is read from there when the copy has
-    none (its boxes are in the original photos' pixels).
+    the images (undistorted or resampled photos); ``eval/boxes.json`` is read from there when
+    the copy has none. Its boxes are in the pixels of the user's photos; they are carried into
+    the copy's images with the photos' own cameras the poses stage keeps beside
+    ``cameras_json`` (:data:`gdiff.cameras.PHOTO_CAMERAS`, :func:`_attach_boxes`).
     """
     root = Path(scene_dir)
     ev = root / "eval"
     masks = _by_stem(ev / "masks")
     before, after = _by_stem(ev / "before"), _by_stem(ev / "after")
     boxes_json = ev / "boxes.json"
+    original = None
     if not boxes_json.is_file() and original_dir is not None:
         boxes_json = Path(original_dir) / "eval" / "boxes.json"
-        if boxes_json.is_file() and Path(original_dir).resolve() != root.resolve():
-            log.warning("%s: boxes are in the original photos' pixels; the scored maps are of "
-                        "the undistorted photos (box positions are approximate near the "
-                        "image edges)", boxes_json)
+        if Path(original_dir).resolve() != root.resolve():
+            original = Path(original_dir)
     box_gt = read_boxes(boxes_json) if boxes_json.is_file() else None
     if not masks and box_gt is None:
         raise SceneError(f"{ev}/masks: no ground-truth masks; the evaluate stage needs "
@@ -272,13 +277,11 @@ def find_eval_views(scene_dir: str | Path, cameras_json: str | Path | None = Non
     if orphans:
         raise SceneError(f"{ev}: eval image(s) {', '.join(orphans[:5])} have no mask in "
                          "eval/masks/ (same file stem); add the masks or remove the images")
-    cams: dict = {}
-    if cameras_json is not None:
-        for c in load_cameras(cameras_json):
-            if c.set in ("eval_before", "eval_after") and c.image:
-                cams[(c.set, Path(c.image).stem)] = c
-            elif c.image:
-                cams[("train", Path(c.image).as_posix())] = c
+    cams = _cameras_by_view(cameras_json) if cameras_json is not None else {}
+    photo_file = (Path(cameras_json).parent / PHOTO_CAMERAS if cameras_json is not None
+                  else None)
+    photo_cams = (_cameras_by_view(photo_file)
+                  if original is not None and photo_file.is_file() else {})
     mb, ma = _by_stem(ev / "mask_before"), _by_stem(ev / "mask_after")
     views = []
     for stem, mpath in sorted(masks.items()):
@@ -290,7 +293,11 @@ def find_eval_views(scene_dir: str | Path, cameras_json: str | Path | None = Non
         cam = cam or (cams.get(("eval_before", stem)) if b is not None else None)
         views.append(EvalView(stem, mpath, b, a, cam, mb.get(stem), ma.get(stem)))
     if box_gt is not None:
-        views += _attach_boxes(root, views, box_gt, cams, cameras_json is not None)
+        views += _attach_boxes(root, views, box_gt, cams, cameras_json is not None,
+                               original, photo_cams)
+        if photo_cams:
+            log.info("%s: boxes carried from the photos' pixels into the undistorted / "
+                     "resampled images with the photos' cameras (%s)", boxes_json, photo_file)
     if cameras_json is not None:
         missing = [v.name for v in views if v.camera is None]
         if missing:
@@ -334,19 +341,60 @@ def _image_size(path: Path) -> tuple[int, int]:
     return int(img.shape[1]), int(img.shape[0])
 
 
+def _cameras_by_view(path: str | Path) -> dict:
+    """The cameras of a ``cameras.json`` by view: ``(set, stem)`` for eval images,
+    ``("train", image path)`` for the others."""
+    out = {}
+    for c in load_cameras(path):
+        if c.set in ("eval_before", "eval_after") and c.image:
+            out[(c.set, Path(c.image).stem)] = c
+        elif c.image:
+            out[("train", Path(c.image).as_posix())] = c
+    return out
+
+
+def _boxes_in_image(boxes: np.ndarray, name: str, root: Path, rel: Path, key, cams: dict,
+                    photo_cams: dict, original: Path | None
+                    ) -> tuple[np.ndarray, tuple[int, int], float]:
+    """Boxes float [K, 4] in the pixels of the user's photo ``rel`` (a path in the scene
+    folder) -> ``(boxes, (width, height) of the image they are now in, its pixels per photo
+    pixel)``. With the photo's own camera and the poses stage's camera of the view
+    (``photo_cams[key]``, ``cams[key]``) the boxes are carried into the stages' copy of the
+    photo under ``root`` (:func:`gdiff.sfm.undistort.boxes_to_pinhole`: lens distortion
+    removed, resampled to the common camera); without them they stay in the photo's pixels,
+    the size that of the user's photo (under ``original``, else ``root``). A box that leaves
+    the stages' image (a margin the undistortion crops) is dropped, logged."""
+    cam, photo = cams.get(key), photo_cams.get(key)
+    if cam is None or photo is None:
+        src = original / rel if original is not None else None
+        return boxes, _image_size(src if src is not None and src.is_file() else root / rel), 1.0
+    out = boxes_to_pinhole(boxes, photo, cam)
+    keep = (out[:, 2] > out[:, 0]) & (out[:, 3] > out[:, 1])
+    if not keep.all():
+        log.warning("%s: %d box(es) lie outside the undistorted / resampled image (a margin "
+                    "the poses stage cropped); not scored", name, int((~keep).sum()))
+    return out[keep], (cam.width, cam.height), float(np.sqrt(cam.fx * cam.fy /
+                                                            (photo.fx * photo.fy)))
+
+
 def _attach_boxes(root: Path, views: list[EvalView], box_gt: dict[str, np.ndarray],
-                  cams: dict, have_cameras: bool) -> list[EvalView]:
+                  cams: dict, have_cameras: bool, original: Path | None = None,
+                  photo_cams: dict | None = None) -> list[EvalView]:
     """Give eval views their boxes; return the box views of training images (module
-    docstring)."""
+    docstring). The boxes are in the pixels of the user's photos (``original``: their scene
+    folder when ``root`` is the poses stage's copy); ``photo_cams`` (by view, as ``cams``) the
+    photos' own cameras, with which they are carried into the copy (:func:`_boxes_in_image`)."""
+    photo_cams = photo_cams or {}
     by_name = {v.name: v for v in views}
     extra = []
     for key, boxes in sorted(box_gt.items()):
         stem = Path(key).stem
         if "/" not in key and stem in by_name:
             v = by_name[stem]
-            v.boxes = boxes
             img = v.after or v.before
-            v.box_size = _image_size(img)
+            view_key = ("eval_after" if v.after is not None else "eval_before", stem)
+            v.boxes, v.box_size, v.box_px = _boxes_in_image(
+                boxes, key, root, img.relative_to(root), view_key, cams, photo_cams, original)
             continue
         if "/" in key:
             rel = Path(key)
@@ -360,8 +408,10 @@ def _attach_boxes(root: Path, views: list[EvalView], box_gt: dict[str, np.ndarra
         if cam is None and have_cameras:
             log.warning("%s: no camera for %s in cameras.json; its boxes are not scored",
                         root / "eval" / "boxes.json", rel)
-        extra.append(EvalView(rel.with_suffix("").as_posix(), None, camera=cam, boxes=boxes,
-                              box_size=_image_size(root / rel), image=root / rel))
+        b, size, px = _boxes_in_image(boxes, key, root, rel, ("train", rel.as_posix()), cams,
+                                      photo_cams, original)
+        extra.append(EvalView(rel.with_suffix("").as_posix(), None, camera=cam, boxes=b,
+                              box_size=size, box_px=px, image=root / rel))
     return extra
 
 
@@ -526,7 +576,8 @@ def evaluate_scene(scene_dir: str | Path, cameras_json: str | Path | None, out_d
         min_area = int(math.ceil(options.box_min_area * h * w))
         objects = object_regions(view.object_masks(), min_area) if gt is not None else []
         gt_boxes = view.boxes_at_scored_size()
-        margin = options.box_margin * (w / view.box_size[0] if view.box_size else 1.0)
+        margin = options.box_margin * (view.box_px * w / view.box_size[0] if view.box_size
+                                       else 1.0)
         preds: dict[str, Prediction] = {}
         for name, fn in methods.items():
             if gt is None and name not in CAMERA_METHODS:

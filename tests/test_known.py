@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+from dataclasses import replace
 from pathlib import Path
 
 import cv2
@@ -15,7 +16,8 @@ import yaml
 from scipy.spatial.transform import Rotation
 
 from gdiff.align import orbit_radius, pose_errors, relative_rotation_errors, rotation_angle_deg
-from gdiff.cameras import Camera, cameras_from_json, cameras_to_json, image_root, load_cameras
+from gdiff.cameras import (PHOTO_CAMERAS, Camera, cameras_from_json, cameras_to_json, image_root,
+                           load_cameras)
 from gdiff.errors import SceneError
 from gdiff.evaluate import find_eval_views
 from gdiff.importers import detect_format, import_scene
@@ -23,7 +25,7 @@ from gdiff.io import read_image, write_image
 from gdiff.sfm import PosesOptions, read_cameras_file, run_poses
 from gdiff.sfm.seed import depth_range, empty_cells
 from gdiff.sfm.refine_known import _place_untied, common_turn, turn_between
-from gdiff.sfm.undistort import undistorted_camera
+from gdiff.sfm.undistort import boxes_to_pinhole, undistort_points, undistorted_camera
 from gdiff.splat.ply import read_points
 
 DIST = (-0.25, 0.08, 0.002, -0.0015, 0.0)  # strong barrel: ~6 px at the corners of 128x96
@@ -450,6 +452,39 @@ def test_distortion_in_cameras_json_is_undistorted(undistorted_poses, distorted_
     views = find_eval_views(image_root(scene, out / "cameras.json"), out / "cameras.json")
     assert len(views) == 3 and all(v.camera is not None for v in views)
     assert all(Path(v.mask).is_relative_to(out / "images") for v in views)
+
+
+def test_boxes_on_distorted_photos_follow_the_undistortion(undistorted_poses):
+    """The poses stage keeps the photos' own (distorted) cameras beside cameras.json, and a box
+    drawn on a distorted photo becomes the box that holds the same pixels in the undistorted
+    image (its edges bend: the box of the mapped edges is that of the whole mapped area)."""
+    out, _, given = undistorted_poses
+    photo = {c.image: c for c in load_cameras(out / PHOTO_CAMERAS)}
+    cams = {c.image: c for c in load_cameras(out / "cameras.json")}
+    assert set(photo) == {c.image for c in given}
+    c = given[0]
+    src, pin = photo[c.image], cams[c.image]
+    assert src.dist == pytest.approx(DIST) and (src.width, src.height) == (c.width, c.height)
+    assert pin.dist is None and np.allclose(src.c2w, pin.c2w)
+    w, h = c.width, c.height
+    boxes = np.array([[0.1 * w, 0.1 * h, 0.5 * w, 0.45 * h], [0.3 * w, 0.4 * h, 0.9 * w, 0.9 * h]])
+    got = boxes_to_pinhole(boxes, src, pin)
+    for b, g in zip(boxes, got):
+        xs, ys = np.meshgrid(np.linspace(b[0], b[2], 80), np.linspace(b[1], b[3], 80))
+        p = undistort_points(np.stack([xs.ravel(), ys.ravel()], 1), src, pin)
+        want = np.array([p[:, 0].min(), p[:, 1].min(), p[:, 0].max(), p[:, 1].max()])
+        want = want.clip(0, [pin.width, pin.height, pin.width, pin.height])
+        assert np.abs(g - want).max() < 0.2, (g, want)
+    assert np.abs(got - boxes).max() > 1.0  # undistortion moved them
+    # under pincushion distortion an edge's middle goes out farthest: not the corners' box
+    pc = replace(src, dist=(0.4, 0.1, 0.0, 0.0, 0.0))
+    b = np.array([0.2 * w, 0.2 * h, 0.8 * w, 0.8 * h])
+    xs, ys = np.meshgrid(np.linspace(b[0], b[2], 81), np.linspace(b[1], b[3], 81))
+    p = undistort_points(np.stack([xs.ravel(), ys.ravel()], 1), pc, pin)
+    want = np.array([p[:, 0].min(), p[:, 1].min(), p[:, 0].max(), p[:, 1].max()])
+    corners = undistort_points(b[[0, 1, 2, 1, 0, 3, 2, 3]].reshape(4, 2), pc, pin)
+    assert np.abs(boxes_to_pinhole(b[None], pc, pin)[0] - want).max() < 0.2
+    assert np.abs(np.r_[corners.min(0), corners.max(0)] - want).max() > 0.5
 
 
 def test_fit_on_the_undistorted_photos_matches_the_pinhole_fit(undistorted_poses, distorted_tiny,

@@ -15,7 +15,7 @@ import pytest
 from PIL import Image, ImageOps
 
 from gdiff.align import pose_errors
-from gdiff.cameras import Camera, cameras_to_json, image_root, load_cameras
+from gdiff.cameras import PHOTO_CAMERAS, Camera, cameras_to_json, image_root, load_cameras
 from gdiff.errors import SceneError
 from gdiff.evaluate import find_eval_views
 from gdiff.io import exif_orientation, read_image, read_mask, write_image, write_mask
@@ -175,11 +175,17 @@ def two_camera_scene(synth_tiny_scene, tmp_path_factory):
     return root, cams
 
 
-def test_known_poses_of_two_cameras_are_resampled_to_one(two_camera_scene, synth_tiny_scene,
-                                                         tmp_path):
+@pytest.fixture(scope="module")
+def two_camera_poses(two_camera_scene, tmp_path_factory):
+    """The poses stage on :func:`two_camera_scene` with its known poses held: (summary, out)."""
+    out = tmp_path_factory.mktemp("two_camera_poses") / "poses"
+    return run_poses(two_camera_scene[0], out, PosesOptions(num_threads=1, refine_known=False)), out
+
+
+def test_known_poses_of_two_cameras_are_resampled_to_one(two_camera_scene, two_camera_poses,
+                                                         synth_tiny_scene):
     root, given = two_camera_scene
-    out = tmp_path / "poses"
-    summary = run_poses(root, out, PosesOptions(num_threads=1, refine_known=False))
+    summary, out = two_camera_poses
     assert summary["resampled"] and not summary["undistorted"]
     assert summary["image_dir"] == "images" and summary["num_points_triangulated"] > 100
     data = json.loads((out / "cameras.json").read_text())
@@ -221,6 +227,53 @@ def test_known_poses_of_two_cameras_are_resampled_to_one(two_camera_scene, synth
     assert {(k.width, k.height) for k in rec.cameras.values()} == {(112, 109)}
     views = load_views(photos, [c for c in cams if c.set in ("before", "after")], 0, "cpu")
     assert {tuple(v.image.shape) for v in views} == {(109, 112, 3)}
+
+
+def test_boxes_on_the_photos_are_carried_into_the_resampled_images(
+        two_camera_scene, two_camera_poses, synth_tiny_scene, tmp_path):
+    """Box ground truth drawn on the user's photos (camera A's 128x96 before photos) lands on
+    the same object in the resampled images (112x109 at camera B's focal length) the partition
+    is scored on: the poses stage keeps the photos' own cameras (photo_cameras.json) and
+    evaluate maps the boxes with them, its margin scaled by the zoom."""
+    root, given = two_camera_scene
+    _, out = two_camera_poses
+    photo = load_cameras(out / PHOTO_CAMERAS)
+    assert {c.image: (c.width, c.height, c.fx) for c in photo} == {
+        c.image: (c.width, c.height, c.fx) for c in given}
+    posed = {c.image: c for c in load_cameras(out / "cameras.json")}
+    assert all(np.allclose(c.c2w, posed[c.image].c2w) for c in photo)
+    # boxes of the changed object in three before photos, in camera A's pixels
+    user = tmp_path / "user"
+    want, drawn = {}, {}
+    for c in [c for c in given if c.set == "before"]:
+        box = _mask_box(synth_tiny_scene.render(c, "before")["changed"])
+        direct = _mask_box(synth_tiny_scene.render(posed[c.image], "before")["changed"])
+        if box is not None and direct is not None and len(want) < 3:
+            drawn[c.image], want[Path(c.image).with_suffix("").as_posix()] = [box], direct
+    assert len(want) == 3
+    (user / "eval").mkdir(parents=True)
+    (user / "eval" / "boxes.json").write_text(json.dumps(drawn))
+    views = {v.name: v for v in find_eval_views(image_root(root, out / "cameras.json"),
+                                                out / "cameras.json", user)}
+    common = posed[next(iter(drawn))]
+    for name, box in want.items():
+        v = views[name]
+        assert v.box_size == (common.width, common.height)
+        assert v.box_px == pytest.approx(150.0 / given[0].fx)
+        got = v.boxes_at_scored_size()[0]
+        assert np.abs(got - box).max() < 1.5, (name, got, box)
+        # the boxes as drawn would be off by several pixels there
+        assert np.abs(np.asarray(drawn[name + ".png"][0]) - box).max() > 4.0
+
+
+def _mask_box(mask: np.ndarray) -> list[float] | None:
+    """``[x0, y0, x1, y1]`` (pixel edges) of a bool mask's pixels, None when it has fewer than
+    20 or touches the border."""
+    ys, xs = np.nonzero(mask)
+    if len(xs) < 20 or xs.min() == 0 or ys.min() == 0 or xs.max() == mask.shape[1] - 1 \
+            or ys.max() == mask.shape[0] - 1:
+        return None
+    return [float(xs.min()), float(ys.min()), float(xs.max() + 1), float(ys.max() + 1)]
 
 
 def test_colmap_registers_two_cameras_and_resamples(two_camera_scene, tmp_path):

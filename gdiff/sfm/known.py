@@ -11,7 +11,7 @@ import os
 from dataclasses import replace
 from pathlib import Path
 
-from ..cameras import SET_TIME, Camera, cameras_from_json, cameras_from_transforms
+from ..cameras import PHOTO_CAMERAS, SET_TIME, Camera, cameras_from_json, cameras_from_transforms
 from ..errors import PosesError, SceneError
 from ..io import read_json
 from .colmap import _extract, _match, extraction_scale
@@ -144,7 +144,8 @@ def _run_known(root: Path, work: Path, images, sizes, known, opts: PosesOptions)
             "resampled": not shares_one_camera(cams)}
     if lens["undistorted"]:
         log.info("%s gives lens distortion: undistorting the photos", src)
-    cams, written = to_one_pinhole(root, work / "images", cams, opts.resample_max_side)
+    cams, written = to_one_pinhole(root, work / "images", cams, opts.resample_max_side,
+                                   work / PHOTO_CAMERAS)
     if written:
         matched = dict(zip(names, cams))
         sizes = {n: (c.width, c.height) for n, c in matched.items()}

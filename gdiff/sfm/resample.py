@@ -30,7 +30,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..cameras import Camera
+from ..cameras import Camera, save_cameras
 from ..errors import SceneError
 from .undistort import remap_scene, undistort_scene, undistorted_camera
 
@@ -102,17 +102,24 @@ def resample_scene(scene_dir: str | Path, out_dir: str | Path, cameras: list[Cam
 
 
 def to_one_pinhole(scene_dir: str | Path, out_dir: str | Path, cameras: list[Camera],
-                   max_side: int = 0) -> tuple[list[Camera], bool]:
+                   max_side: int = 0, photo_cameras: str | Path | None = None
+                   ) -> tuple[list[Camera], bool]:
     """Bring the photos to one pinhole camera: resampled to the common camera when the
     cameras differ (:func:`resample_scene`), undistorted when they share one distorting lens
-    (:func:`gdiff.sfm.undistort.undistort_scene`), else left alone.
+    (:func:`gdiff.sfm.undistort.undistort_scene`), else left alone. ``photo_cameras``
+    (optional): where the photos' own ``cameras`` are saved (a ``cameras.json``) when new
+    images were written (:data:`gdiff.cameras.PHOTO_CAMERAS`).
 
     Returns:
         ``(cameras, written)``: the cameras of the images to use, and whether new images were
         written to ``out_dir``.
     """
+    if shares_one_camera(cameras) and all(c.dist is None for c in cameras):
+        return cameras, False
     if not shares_one_camera(cameras):
-        return resample_scene(scene_dir, out_dir, cameras, max_side), True
-    if any(c.dist is not None for c in cameras):
-        return undistort_scene(scene_dir, out_dir, cameras), True
-    return cameras, False
+        new = resample_scene(scene_dir, out_dir, cameras, max_side)
+    else:
+        new = undistort_scene(scene_dir, out_dir, cameras)
+    if photo_cameras is not None:
+        save_cameras(photo_cameras, cameras)
+    return new, True

@@ -8,11 +8,13 @@ import os
 import shutil
 import tempfile
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
 
-from ..cameras import SETS, TRAIN_SETS, Camera, save_cameras
+from ..cameras import (PHOTO_CAMERAS, SETS, TRAIN_SETS, Camera, load_cameras,
+                       save_cameras)
 from ..errors import PosesError, SceneError
 from ..splat.ply import write_points
 from .colmap import _colmap_logging, _points_of, _run_colmap
@@ -177,7 +179,8 @@ def _one_pinhole(photos: Path, work: Path, cams: list[Camera], rec, opts: PosesO
     if any(c.dist is not None for c in cams):
         log.info("COLMAP estimated lens distortion (%s): undistorting the photos",
                  opts.camera_model)
-    new, written = to_one_pinhole(photos, work / "images", cams, opts.resample_max_side)
+    new, written = to_one_pinhole(photos, work / "images", cams, opts.resample_max_side,
+                                  work / PHOTO_CAMERAS)
     if not written:
         return cams, None
     undistort_reconstruction(rec, {c.image: c for c in cams}, {c.image: c for c in new})
@@ -187,8 +190,9 @@ def _one_pinhole(photos: Path, work: Path, cams: list[Camera], rec, opts: PosesO
 def _commit(work: Path, out: Path, cams: list[Camera], image_dir: str | None,
             photo_dir: str | None = None) -> None:
     """Move the finished outputs from ``work`` into ``out``; cameras.json last. ``image_dir``
-    (in ``work``: undistorted photos) is moved to ``out``; otherwise ``photo_dir`` (relative
-    to ``out``), where set, is where cameras.json says the images are."""
+    (in ``work``: undistorted photos) is moved to ``out``, and with it the photos' own cameras
+    (:data:`gdiff.cameras.PHOTO_CAMERAS`, at the registered poses); otherwise ``photo_dir``
+    (relative to ``out``), where set, is where cameras.json says the images are."""
     (out / "cameras.json").unlink(missing_ok=True)
     if (out / "images").exists():  # undistorted photos of an earlier run
         os.replace(out / "images", work / "old_images")
@@ -201,4 +205,11 @@ def _commit(work: Path, out: Path, cams: list[Camera], image_dir: str | None,
         os.replace(target, old)
     os.replace(work / "sparse" / "0", target)
     os.replace(work / "points.ply", out / "points.ply")
+    (out / PHOTO_CAMERAS).unlink(missing_ok=True)
+    if image_dir and (work / PHOTO_CAMERAS).is_file():  # the photos' own cameras, posed
+        final = {c.image: c for c in cams}
+        save_cameras(out / PHOTO_CAMERAS, [
+            replace(c, c2w=final[c.image].c2w.copy(), set=final[c.image].set,
+                    time=final[c.image].time)
+            for c in load_cameras(work / PHOTO_CAMERAS) if c.image in final])
     save_cameras(out / "cameras.json", cams, image_dir=image_dir or photo_dir)

@@ -77,6 +77,33 @@ def undistort_points(xy: np.ndarray, cam: Camera, pinhole: Camera) -> np.ndarray
     return out.reshape(-1, 2) + 0.5
 
 
+def boxes_to_pinhole(boxes: np.ndarray, cam: Camera, pinhole: Camera, samples: int = 16
+                     ) -> np.ndarray:
+    """Boxes float [K, 4] ``x0, y0, x1, y1`` in pixels of ``cam``'s photo (distorted, of its
+    own size) -> the boxes that hold them in the image of ``pinhole`` (same pose; the poses
+    stage's undistorted or resampled photo), clipped to that image, float [K, 4]. A straight
+    edge of the photo bends under undistortion: ``samples`` points along each edge are mapped
+    (:func:`undistort_points`) and their bounding box taken. A box that falls wholly outside
+    the pinhole image (the margin an undistortion or a common field of view crops) comes back
+    empty (``x1 <= x0`` or ``y1 <= y0``)."""
+    boxes = np.asarray(boxes, np.float64).reshape(-1, 4)
+    if not len(boxes):
+        return boxes.copy()
+    s = np.linspace(0.0, 1.0, samples)
+    out = np.empty_like(boxes)
+    for k, (x0, y0, x1, y1) in enumerate(boxes):
+        xs, ys = x0 + s * (x1 - x0), y0 + s * (y1 - y0)
+        edge = np.concatenate([np.stack([xs, np.full_like(xs, y0)], 1),
+                               np.stack([xs, np.full_like(xs, y1)], 1),
+                               np.stack([np.full_like(ys, x0), ys], 1),
+                               np.stack([np.full_like(ys, x1), ys], 1)])
+        p = undistort_points(edge, cam, pinhole)
+        out[k] = p[:, 0].min(), p[:, 1].min(), p[:, 0].max(), p[:, 1].max()
+    out[:, [0, 2]] = out[:, [0, 2]].clip(0, pinhole.width)
+    out[:, [1, 3]] = out[:, [1, 3]].clip(0, pinhole.height)
+    return out
+
+
 def _remap_image(img: np.ndarray, maps, nearest: bool) -> np.ndarray:
     return cv2.remap(img, maps[0], maps[1], cv2.INTER_NEAREST if nearest else cv2.INTER_LINEAR,
                      borderMode=cv2.BORDER_REPLICATE)

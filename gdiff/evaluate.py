@@ -294,7 +294,7 @@ def find_eval_views(scene_dir: str | Path, cameras_json: str | Path | None = Non
         views.append(EvalView(stem, mpath, b, a, cam, mb.get(stem), ma.get(stem)))
     if box_gt is not None:
         views += _attach_boxes(root, views, box_gt, cams, cameras_json is not None,
-                               original, photo_cams)
+                               original, photo_cams, boxes_json)
         if photo_cams:
             log.info("%s: boxes carried from the photos' pixels into the undistorted / "
                      "resampled images with the photos' cameras (%s)", boxes_json, photo_file)
@@ -377,37 +377,68 @@ def _boxes_in_image(boxes: np.ndarray, name: str, root: Path, rel: Path, key, ca
                                                             (photo.fx * photo.fy)))
 
 
+def box_image(root: Path, key: str, eval_stems) -> tuple[str, str | Path] | None:
+    """Where an entry ``key`` of ``eval/boxes.json`` points (module docstring): ``("view",
+    stem)`` for an eval view (a bare name whose stem is in ``eval_stems``), ``("train", rel)``
+    for an image of the scene folder ``root`` (``rel`` its path there; a bare file name taken
+    from ``after/``, else ``before/``), None when neither exists."""
+    if "/" not in key and Path(key).stem in eval_stems:
+        return "view", Path(key).stem
+    if "/" in key:
+        rel = Path(key)
+    else:
+        rel = next((Path(d) / key for d in ("after", "before") if (root / d / key).is_file()),
+                   Path("after") / key)
+    return ("train", rel) if (root / rel).is_file() else None
+
+
+def check_boxes(boxes_json: Path, root: Path, eval_stems) -> None:
+    """Check ``eval/boxes.json`` of the scene folder ``root`` before anything runs: every
+    entry with boxes names an eval view or an image of the scene (:func:`box_image`);
+    :class:`SceneError` naming the entry otherwise. An entry without boxes may name an image
+    the scene does not have (a view left out of a dataset's file): nothing to score there."""
+    for key, boxes in read_boxes(boxes_json).items():
+        if len(boxes) and box_image(root, key, eval_stems) is None:
+            raise SceneError(f"{boxes_json}: entry {key!r} has {len(boxes)} box(es) but is "
+                             f"neither an eval view nor an image of the scene ({root / key} "
+                             "and after/, before/ hold no such image); fix the name or remove "
+                             "the entry")
+
+
 def _attach_boxes(root: Path, views: list[EvalView], box_gt: dict[str, np.ndarray],
                   cams: dict, have_cameras: bool, original: Path | None = None,
-                  photo_cams: dict | None = None) -> list[EvalView]:
+                  photo_cams: dict | None = None, source: Path | None = None
+                  ) -> list[EvalView]:
     """Give eval views their boxes; return the box views of training images (module
     docstring). The boxes are in the pixels of the user's photos (``original``: their scene
     folder when ``root`` is the poses stage's copy); ``photo_cams`` (by view, as ``cams``) the
-    photos' own cameras, with which they are carried into the copy (:func:`_boxes_in_image`)."""
+    photos' own cameras, with which they are carried into the copy (:func:`_boxes_in_image`).
+    ``source``: the ``boxes.json`` read, named in messages."""
     photo_cams = photo_cams or {}
+    source = source or root / "eval" / "boxes.json"
     by_name = {v.name: v for v in views}
     extra = []
     for key, boxes in sorted(box_gt.items()):
-        stem = Path(key).stem
-        if "/" not in key and stem in by_name:
-            v = by_name[stem]
+        target = box_image(root, key, by_name)
+        if target is None:
+            if not len(boxes):
+                log.info("%s: entry %r has no boxes and names no image of the scene: skipped",
+                         source, key)
+                continue
+            raise SceneError(f"{source}: entry {key!r} is neither an eval view nor an image "
+                             f"of the scene ({root / key} does not exist)")
+        if target[0] == "view":
+            v = by_name[target[1]]
             img = v.after or v.before
-            view_key = ("eval_after" if v.after is not None else "eval_before", stem)
+            view_key = ("eval_after" if v.after is not None else "eval_before", target[1])
             v.boxes, v.box_size, v.box_px = _boxes_in_image(
                 boxes, key, root, img.relative_to(root), view_key, cams, photo_cams, original)
             continue
-        if "/" in key:
-            rel = Path(key)
-        else:
-            rel = next((Path(d) / key for d in ("after", "before") if (root / d / key).is_file()),
-                       Path("after") / key)
-        if not (root / rel).is_file():
-            raise SceneError(f"{root / 'eval' / 'boxes.json'}: entry {key!r} is neither an eval "
-                             f"view nor an image of the scene ({root / rel} does not exist)")
+        rel = target[1]
         cam = cams.get(("train", rel.as_posix()))
         if cam is None and have_cameras:
             log.warning("%s: no camera for %s in cameras.json; its boxes are not scored",
-                        root / "eval" / "boxes.json", rel)
+                        source, rel)
         b, size, px = _boxes_in_image(boxes, key, root, rel, ("train", rel.as_posix()), cams,
                                       photo_cams, original)
         extra.append(EvalView(rel.with_suffix("").as_posix(), None, camera=cam, boxes=b,

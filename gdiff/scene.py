@@ -291,6 +291,10 @@ def validate_scene(scene_dir: str | Path) -> dict:
         if extra:
             raise SceneError(f"{ev / 'masks'}: mask(s) {', '.join(sorted(extra))} have no "
                              "eval/before and eval/after images")
+        if (ev / "boxes.json").is_file():  # now, not when evaluate reads it at the end
+            from .evaluate import check_boxes
+
+            check_boxes(ev / "boxes.json", root, stems)
     for rec in images:
         if rec.get("video"):
             w, h = rec["width"], rec["height"]

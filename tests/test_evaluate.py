@@ -1,5 +1,6 @@
 """Evaluate stage and baselines on small image pairs with known changes."""
 
+import json
 import math
 
 import numpy as np
@@ -231,7 +232,6 @@ def test_box_ground_truth_on_eval_views_and_training_images(tmp_path):
     """eval/boxes.json in the ObChange layout: boxes of an eval view are scored beside its mask;
     boxes of a training image (after/v00.png) make a box view where only the partition is
     rendered, at that image's camera (at the image's size), and the others are skipped."""
-    import json
 
     root, boxes = _scene(tmp_path)
     from gdiff.cameras import load_cameras
@@ -311,6 +311,18 @@ def test_box_only_scene_validates(tmp_path):
     views = E.find_eval_views(root)
     assert [v.name for v in views] == ["after/000"] and views[0].mask is None
     assert views[0].box_size == (W, H) and views[0].shape() == (H, W)
+    # a dataset's file copied whole for a scene made of some of its views: an entry without
+    # boxes for a photo left out is skipped, one with boxes stops the scene's check at once
+    # (not at the end of the run, when evaluate reads it)
+    (root / "eval" / "boxes.json").write_text(json.dumps({"views": {
+        "000.png": {"boxes_xyxy_px": [[1, 2, 10, 12]]}, "007.png": {"boxes_xyxy_px": []}}}))
+    validate_scene(root)
+    assert [v.name for v in E.find_eval_views(root)] == ["after/000"]
+    (root / "eval" / "boxes.json").write_text(json.dumps({"views": {
+        "000.png": {"boxes_xyxy_px": [[1, 2, 10, 12]]},
+        "007.png": {"boxes_xyxy_px": [[1, 1, 5, 5]]}}}))
+    with pytest.raises(SceneError, match=r"boxes.json: entry '007.png' has 1 box\(es\)"):
+        validate_scene(root)
 
 
 def test_render_quality_psnr_at_eval_views(tmp_path):
@@ -334,7 +346,6 @@ def test_render_diff_scores_the_fitted_model_at_any_camera(tmp_path):
     """render_diff compares the model's own renders at t=0 and t=1 at the eval camera: scored at
     eval views and, as a camera method, at training images with boxes; without a renderer the
     method is left out."""
-    import json
 
     root, boxes = _scene(tmp_path)
     from gdiff.cameras import load_cameras

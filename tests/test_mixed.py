@@ -20,6 +20,7 @@ from gdiff.errors import SceneError
 from gdiff.evaluate import find_eval_views
 from gdiff.io import exif_orientation, read_image, read_mask, write_image, write_mask
 from gdiff.scene import validate_scene
+from gdiff.segment.base import mask_bbox
 from gdiff.sfm import PosesOptions, read_cameras_file, run_poses
 from gdiff.sfm.images import _image_sizes
 from gdiff.sfm.resample import common_camera, shares_one_camera, view_extent
@@ -269,11 +270,10 @@ def test_boxes_on_the_photos_are_carried_into_the_resampled_images(
 def _mask_box(mask: np.ndarray) -> list[float] | None:
     """``[x0, y0, x1, y1]`` (pixel edges) of a bool mask's pixels, None when it has fewer than
     20 or touches the border."""
-    ys, xs = np.nonzero(mask)
-    if len(xs) < 20 or xs.min() == 0 or ys.min() == 0 or xs.max() == mask.shape[1] - 1 \
-            or ys.max() == mask.shape[0] - 1:
+    x0, y0, x1, y1 = mask_bbox(mask)
+    if mask.sum() < 20 or min(x0, y0) == 0 or x1 == mask.shape[1] or y1 == mask.shape[0]:
         return None
-    return [float(xs.min()), float(ys.min()), float(xs.max() + 1), float(ys.max() + 1)]
+    return [float(x0), float(y0), float(x1), float(y1)]
 
 
 def test_colmap_registers_two_cameras_and_resamples(two_camera_scene, tmp_path):

@@ -114,12 +114,12 @@ def to_one_pinhole(scene_dir: str | Path, out_dir: str | Path, cameras: list[Cam
         ``(cameras, written)``: the cameras of the images to use, and whether new images were
         written to ``out_dir``.
     """
-    if shares_one_camera(cameras) and all(c.dist is None for c in cameras):
-        return cameras, False
     if not shares_one_camera(cameras):
         new = resample_scene(scene_dir, out_dir, cameras, max_side)
-    else:
+    elif any(c.dist is not None for c in cameras):
         new = undistort_scene(scene_dir, out_dir, cameras)
+    else:
+        return cameras, False
     if photo_cameras is not None:
         save_cameras(photo_cameras, cameras)
     return new, True

@@ -161,6 +161,16 @@ def _log_chroma(rgb: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return np.log(s / 3 + 0.02), c / s[..., None]
 
 
+def _blurred(photo: np.ndarray, blur: float) -> np.ndarray:
+    """float32 [H, W, 3]: ``photo`` blurred by a Gaussian of sigma ``blur`` x its longer side
+    (itself for ``blur`` 0)."""
+    photo = np.asarray(photo, np.float32)
+    if blur <= 0:
+        return photo
+    return cv2.GaussianBlur(photo, (0, 0), blur * max(photo.shape[:2]),
+                            borderType=cv2.BORDER_REPLICATE)
+
+
 def interior(ids: np.ndarray, rim: int) -> np.ndarray:
     """bool [H, W]: pixels of the ID map ``ids`` int [H, W] whose ID fills the disc of radius
     ``rim`` pixels around them (each ID's mask eroded by ``rim``; all True when ``rim`` is 0)."""
@@ -175,7 +185,7 @@ def interior(ids: np.ndarray, rim: int) -> np.ndarray:
 def point_photo_counts(own: KeyPhoto, ids: np.ndarray, changed: np.ndarray,
                        others: list[KeyPhoto], depth_tol: float, n: int,
                        quantile: float = 0.9, rim: int = 2, min_reference: int = 200,
-                       window: float = 0.125
+                       window: float = 0.125, blur: float = 1 / 320
                        ) -> tuple[np.ndarray, np.ndarray]:
     """How the other time's photos show the surface points of one key photo's IDs.
 
@@ -186,7 +196,10 @@ def point_photo_counts(own: KeyPhoto, ids: np.ndarray, changed: np.ndarray,
     no surface is rendered in front of it there (nearer by more than ``depth_tol`` x its depth),
     that photo shows what stands at or behind the point at its time, and the point's colour in
     the two photos is compared (absolute difference of log brightness plus L1 difference of
-    chromaticity). The reference is the unchanged surface of the same pair of photos: the
+    chromaticity), both photos blurred by a Gaussian of ``blur`` x their longer side (sigma;
+    :func:`_blurred`): the fit's depth puts a point a pixel or two off its place in the other
+    photo, and on a finely textured surface (granite, carpet, wood grain) one pixel off is
+    another colour, while what stands in front of it at one time only is not. The reference is the unchanged surface of the same pair of photos: the
     pixels of IDs not ``changed`` that the other photo shows, chosen the same way; their
     differences come from exposure, view-dependent shading and the fit's depth error, which
     moves a point off its surface in the other photo as much as a changed ID's point. A
@@ -213,7 +226,7 @@ def point_photo_counts(own: KeyPhoto, ids: np.ndarray, changed: np.ndarray,
     is_changed = np.zeros(len(flat_ids), bool)
     is_changed[ok] = changed[flat_ids[ok]]
     inside = interior(np.asarray(ids), rim).ravel()
-    lum, chroma = _log_chroma(own.photo)
+    lum, chroma = _log_chroma(_blurred(own.photo, blur))
     lum, chroma = lum.ravel(), chroma.reshape(-1, 3)
     for kp in others:
         idx, zz, row, col = project_to_depth(P, ok, DepthView(kp.depth_camera(), kp.depth))
@@ -221,7 +234,7 @@ def point_photo_counts(own: KeyPhoto, ids: np.ndarray, changed: np.ndarray,
         surf = np.isfinite(d) & (d > 0)
         tol = depth_tol * z.ravel()[idx]
         shown = ~(surf & (d < zz - tol))
-        l2, c2 = _log_chroma(np.asarray(kp.photo)[row, col])
+        l2, c2 = _log_chroma(_blurred(kp.photo, blur)[row, col])
         diff = np.abs(lum[idx] - l2) + np.abs(chroma[idx] - c2).sum(-1)
         ref = shown & ~is_changed[idx]
         if ref.sum() < min_reference:

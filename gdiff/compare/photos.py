@@ -199,10 +199,11 @@ def point_photo_counts(own: KeyPhoto, ids: np.ndarray, changed: np.ndarray,
     chromaticity), both photos blurred by a Gaussian of ``blur`` x their longer side (sigma;
     :func:`_blurred`): the fit's depth puts a point a pixel or two off its place in the other
     photo, and on a finely textured surface (granite, carpet, wood grain) one pixel off is
-    another colour, while what stands in front of it at one time only is not. The reference is the unchanged surface of the same pair of photos: the
-    pixels of IDs not ``changed`` that the other photo shows, chosen the same way; their
-    differences come from exposure, view-dependent shading and the fit's depth error, which
-    moves a point off its surface in the other photo as much as a changed ID's point. A
+    another colour, while what stands in front of it at one time only is not. The reference
+    is the unchanged surface of the same pair of photos: the pixels of IDs not ``changed``
+    that the other photo shows, chosen the same way; their differences come from exposure,
+    view-dependent shading and the fit's depth error, which moves a point off its surface in
+    the other photo as much as a changed ID's point. A
     changed ID's point counts as *differing* when its difference exceeds the ``quantile`` of
     the reference's around it (so about 1 - ``quantile`` of an unchanged surface's points
     differ): within a square of ``window`` x the photo's longer side (:func:`_local_cut`; the

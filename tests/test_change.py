@@ -1407,6 +1407,50 @@ def test_point_lookup_sees_past_a_fine_texture_a_pixel_off():
     assert shares[0.0][3] < 0.2 and shares[1 / 320][3] < 0.2
 
 
+def test_point_lookup_sees_past_the_other_visits_exposure():
+    """A white box stands on a grey counter at the after visit; the before visit's camera
+    exposed one stop brighter, so the counter there looks as bright as the box does in the
+    after photo. Compared as they are, the box's points look like the counter in the before
+    photos and every unchanged point differs by the stop; with the two photos' exposure (the
+    unchanged surface's median difference) taken out, the box stands out and a patch of
+    counter taken for a change does not."""
+    from gdiff.cameras import Camera
+    from gdiff.compare.photos import KeyPhoto, point_photo_counts
+
+    H, W, f = 240, 320, 250.0
+    rng = np.random.default_rng(5)
+    grain = rng.uniform(0.25, 0.35, (400, 400)).astype(np.float32)  # 5 cm cells of counter
+
+    def shot(x, box, exposure):
+        c2w = np.eye(4)
+        c2w[0, 3] = x
+        cam = Camera(W, H, f, f, W / 2, H / 2, c2w)
+        u = (np.arange(W) + 0.5 - cam.cx) / f
+        v = (np.arange(H) + 0.5 - cam.cy) / f
+        z = np.full((H, W), 5.0)
+        wx, wy = x + u[None, :] * z, v[:, None] * z
+        rgb = np.repeat(grain[((wy + 10) * 20).astype(int), ((wx + 10) * 20).astype(int)]
+                        [..., None], 3, -1)
+        inside = (np.abs(wx) < 0.6) & (np.abs(wy) < 0.6)
+        if box:
+            z = np.where(inside, 4.9, z)
+            rgb[inside] = 0.6
+        return cam, z, rgb * exposure
+
+    cam, z, rgb = shot(0.0, True, 1.0)
+    own = KeyPhoto(1, cam, z, rgb)
+    others = [KeyPhoto(0, c, zz, im) for c, zz, im in (shot(x, False, 2.0) for x in (-0.3, 0.3))]
+    ids = np.ones((H, W), np.int32)
+    ids[z < 5.0] = 2  # the box
+    ids[20:70, 20:70] = 3  # a patch of counter the segmenter cut differently
+    total, above = point_photo_counts(own, ids, np.array([False, False, True, True]), others,
+                                      0.02, 4)
+    share = above / np.maximum(total, 1)
+    assert total[2] > 2000 and total[3] > 1000
+    assert share[2] > 0.9
+    assert share[3] < 0.2
+
+
 def test_point_lookup_reference_is_local_and_outlines_are_left_out():
     """The reference of the per-point photo test is taken around each pixel: where the
     lookup is poorer (half of the view, larger differences on unchanged surface) the cut is

@@ -196,12 +196,16 @@ def point_photo_counts(own: KeyPhoto, ids: np.ndarray, changed: np.ndarray,
     no surface is rendered in front of it there (nearer by more than ``depth_tol`` x its depth),
     that photo shows what stands at or behind the point at its time, and the point's colour in
     the two photos is compared (absolute difference of log brightness plus L1 difference of
-    chromaticity), both photos blurred by a Gaussian of ``blur`` x their longer side (sigma;
+    chromaticity, each once the pair's exposure and white balance are taken out: the median of
+    the signed differences over the reference points below is subtracted from every point's;
+    auto exposure differs between visits, and uncorrected, every point differs by it while a
+    changed point whose own change runs against it looks alike), both photos blurred by a
+    Gaussian of ``blur`` x their longer side (sigma;
     :func:`_blurred`): the fit's depth puts a point a pixel or two off its place in the other
     photo, and on a finely textured surface (granite, carpet, wood grain) one pixel off is
     another colour, while what stands in front of it at one time only is not. The reference
     is the unchanged surface of the same pair of photos: the pixels of IDs not ``changed``
-    that the other photo shows, chosen the same way; their differences come from exposure,
+    that the other photo shows, chosen the same way; their differences come from
     view-dependent shading and the fit's depth error, which moves a point off its surface in
     the other photo as much as a changed ID's point. A
     changed ID's point counts as *differing* when its difference exceeds the ``quantile`` of
@@ -236,10 +240,14 @@ def point_photo_counts(own: KeyPhoto, ids: np.ndarray, changed: np.ndarray,
         tol = depth_tol * z.ravel()[idx]
         shown = ~(surf & (d < zz - tol))
         l2, c2 = _log_chroma(_blurred(kp.photo, blur)[row, col])
-        diff = np.abs(lum[idx] - l2) + np.abs(chroma[idx] - c2).sum(-1)
         ref = shown & ~is_changed[idx]
         if ref.sum() < min_reference:
             continue
+        # the two photos' exposure and white balance: the unchanged surface's median
+        # difference, taken out of every point's
+        d_lum, d_chroma = lum[idx] - l2, chroma[idx] - c2
+        diff = (np.abs(d_lum - np.median(d_lum[ref]))
+                + np.abs(d_chroma - np.median(d_chroma[ref], 0)).sum(-1))
         cut = np.quantile(diff[ref], quantile)
         if window > 0:
             cut = _local_cut(idx[ref], diff[ref], (H, W), window, quantile, cut)[idx]

@@ -1359,6 +1359,32 @@ def test_colour_is_not_believed_where_the_photos_of_both_visits_show_the_same_po
         assert (cand["verdict"] == "kept: colour").all(), kw
 
 
+def _counter_shot(x: float, size: tuple[int, int, float], grain: np.ndarray, cells: float,
+                  half: float, colour) -> tuple:
+    """A pinhole camera (``size`` = width, height, focal in pixels) at (x, 0, 0) looking down +z
+    at a counter, the plane z = 5 textured with ``grain`` (grey values, ``cells`` cells per
+    scene unit, the counter's point (-10, -10) at its corner), with a box's front face 10 cm in
+    front of it, a square of half side ``half`` centred on the z axis in ``colour`` (none for
+    ``half`` 0). Returns (camera, z-depth float [H, W], linear RGB float [H, W, 3])."""
+    from gdiff.cameras import Camera
+
+    W, H, f = size
+    c2w = np.eye(4)
+    c2w[0, 3] = x
+    cam = Camera(W, H, f, f, W / 2, H / 2, c2w)
+    u = (np.arange(W) + 0.5 - cam.cx) / f
+    v = (np.arange(H) + 0.5 - cam.cy) / f
+    z = np.full((H, W), 5.0)
+    wx, wy = x + u[None, :] * z, v[:, None] * z
+    g = grain[((wy + 10) * cells).astype(int), ((wx + 10) * cells).astype(int)]
+    rgb = np.repeat(g[..., None], 3, -1)
+    if half > 0:
+        box = (np.abs(wx) < half) & (np.abs(wy) < half)
+        z = np.where(box, 4.9, z)
+        rgb[box] = colour
+    return cam, z, rgb
+
+
 def test_point_lookup_sees_past_a_fine_texture_a_pixel_off():
     """A dull red can stands on a granite counter (speckle one pixel fine) at the after visit.
     The fit put the after visit's depth a little too near, so the can's points and the
@@ -1367,32 +1393,19 @@ def test_point_lookup_sees_past_a_fine_texture_a_pixel_off():
     told from it; compared in the photos blurred by a few pixels, the speckle averages to the
     counter's grey and the can stands out, while a patch of counter taken for a change stays
     as unremarkable as the rest."""
-    from gdiff.cameras import Camera
     from gdiff.compare.photos import KeyPhoto, point_photo_counts
 
-    H, W, f = 480, 640, 500.0
     rng = np.random.default_rng(11)
     grain = rng.uniform(0.1, 0.9, (2000, 2000)).astype(np.float32)  # 1 cm cells of granite
 
-    def shot(x, can):
-        c2w = np.eye(4)
-        c2w[0, 3] = x
-        cam = Camera(W, H, f, f, W / 2, H / 2, c2w)
-        u = (np.arange(W) + 0.5 - cam.cx) / f
-        v = (np.arange(H) + 0.5 - cam.cy) / f
-        z = np.full((H, W), 5.0)
-        wx, wy = x + u[None, :] * z, v[:, None] * z
-        g = grain[((wy + 10) * 100).astype(int), ((wx + 10) * 100).astype(int)]
-        rgb = np.repeat(g[..., None], 3, -1)
-        box = (np.abs(wx - 0.0) < 0.4) & (np.abs(wy) < 0.4)
-        if can:  # its front face, 10 cm in front of the counter
-            z = np.where(box, 4.9, z)
-            rgb[box] = (0.5, 0.32, 0.3)
-        return cam, z, rgb
+    def shot(x, can):  # the can's front face, 10 cm in front of the counter
+        return _counter_shot(x, (640, 480, 500.0), grain, 100, 0.4 if can else 0.0,
+                             (0.5, 0.32, 0.3))
 
     cam, z, rgb = shot(0.0, True)
     own = KeyPhoto(1, cam, z * 0.95, rgb)  # the fit put it all 5 % too near
-    others = [KeyPhoto(0, c, zz, im) for c, zz, im in (shot(x, False)[:3] for x in (-0.3, 0.3))]
+    others = [KeyPhoto(0, c, zz, im) for c, zz, im in (shot(x, False) for x in (-0.3, 0.3))]
+    H, W = z.shape
     ids = np.ones((H, W), np.int32)
     ids[z < 5.0] = 2  # the can
     ids[50:150, 50:150] = 3  # a patch of counter the segmenter cut differently
@@ -1414,32 +1427,19 @@ def test_point_lookup_sees_past_the_other_visits_exposure():
     photos and every unchanged point differs by the stop; with the two photos' exposure (the
     unchanged surface's median difference) taken out, the box stands out and a patch of
     counter taken for a change does not."""
-    from gdiff.cameras import Camera
     from gdiff.compare.photos import KeyPhoto, point_photo_counts
 
-    H, W, f = 240, 320, 250.0
     rng = np.random.default_rng(5)
     grain = rng.uniform(0.25, 0.35, (400, 400)).astype(np.float32)  # 5 cm cells of counter
 
     def shot(x, box, exposure):
-        c2w = np.eye(4)
-        c2w[0, 3] = x
-        cam = Camera(W, H, f, f, W / 2, H / 2, c2w)
-        u = (np.arange(W) + 0.5 - cam.cx) / f
-        v = (np.arange(H) + 0.5 - cam.cy) / f
-        z = np.full((H, W), 5.0)
-        wx, wy = x + u[None, :] * z, v[:, None] * z
-        rgb = np.repeat(grain[((wy + 10) * 20).astype(int), ((wx + 10) * 20).astype(int)]
-                        [..., None], 3, -1)
-        inside = (np.abs(wx) < 0.6) & (np.abs(wy) < 0.6)
-        if box:
-            z = np.where(inside, 4.9, z)
-            rgb[inside] = 0.6
+        cam, z, rgb = _counter_shot(x, (320, 240, 250.0), grain, 20, 0.6 if box else 0.0, 0.6)
         return cam, z, rgb * exposure
 
     cam, z, rgb = shot(0.0, True, 1.0)
     own = KeyPhoto(1, cam, z, rgb)
     others = [KeyPhoto(0, c, zz, im) for c, zz, im in (shot(x, False, 2.0) for x in (-0.3, 0.3))]
+    H, W = z.shape
     ids = np.ones((H, W), np.int32)
     ids[z < 5.0] = 2  # the box
     ids[20:70, 20:70] = 3  # a patch of counter the segmenter cut differently

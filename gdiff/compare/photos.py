@@ -195,17 +195,20 @@ def point_photo_counts(own: KeyPhoto, ids: np.ndarray, changed: np.ndarray,
     depth back-projected) is looked up in every photo of ``others`` (the other time's): where
     no surface is rendered in front of it there (nearer by more than ``depth_tol`` x its depth),
     that photo shows what stands at or behind the point at its time, and the point's colour in
-    the two photos is compared (absolute difference of log brightness plus L1 difference of
-    chromaticity, each once the pair's exposure and white balance are taken out: the median of
-    the signed differences over the reference points below is subtracted from every point's;
-    auto exposure differs between visits, and uncorrected, every point differs by it while a
-    changed point whose own change runs against it looks alike), both photos blurred by a
-    Gaussian of ``blur`` x their longer side (sigma;
+    the two photos is compared: absolute difference of log brightness plus L1 difference of
+    chromaticity.
+
+    Both photos are blurred first by a Gaussian of ``blur`` x their longer side (sigma;
     :func:`_blurred`): the fit's depth puts a point a pixel or two off its place in the other
     photo, and on a finely textured surface (granite, carpet, wood grain) one pixel off is
-    another colour, while what stands in front of it at one time only is not. The reference
-    is the unchanged surface of the same pair of photos: the pixels of IDs not ``changed``
-    that the other photo shows, chosen the same way; their differences come from
+    another colour, while what stands in front of it at one time only is not. And the pair's
+    exposure and white balance are taken out: the median of the signed differences over the
+    reference points (below) is subtracted from every point's. Auto exposure differs between
+    visits; uncorrected, every point differs by it, and a changed point whose own change runs
+    against it looks alike.
+
+    The reference is the unchanged surface of the same pair of photos: the pixels of IDs not
+    ``changed`` that the other photo shows, chosen the same way; their differences come from
     view-dependent shading and the fit's depth error, which moves a point off its surface in
     the other photo as much as a changed ID's point. A
     changed ID's point counts as *differing* when its difference exceeds the ``quantile`` of

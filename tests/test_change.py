@@ -1451,6 +1451,47 @@ def test_point_lookup_sees_past_the_other_visits_exposure():
     assert share[3] < 0.2
 
 
+@pytest.mark.parametrize("fit_took_it_up", [False, True])
+def test_visit_exposure_brings_both_visits_photos_to_one_exposure(fit_took_it_up):
+    """The after visit's camera exposed one stop brighter, and a white box was put on the grey
+    counter. Photos of the two visits compared as they are differ on the counter by the stop
+    (the region photo test calls it a change); brought to one exposure by the renders at their
+    cameras they agree on the counter and still differ on the box. Whether the fit learnt the
+    stop as a change over time (each time's render has its visit's exposure) or its per-image
+    correction took it up (both renders at the model's own exposure), both photos come out at
+    one exposure."""
+    from gdiff.compare.photos import photos_differ, visit_exposure
+
+    rng = np.random.default_rng(3)
+    grain = rng.uniform(0.25, 0.35, (400, 400)).astype(np.float32)
+    gain = {0: 1.0, 1: 2.0}  # each visit's exposure
+    scenes = {t: [_counter_shot(x, (160, 120, 125.0), grain, 20, 0.6 if t else 0.0, 0.6)[2]
+                  for x in (-0.2, 0.2)] for t in (0, 1)}
+    photos = {t: [s * gain[t] for s in scenes[t]] for t in (0, 1)}
+    fixed = {}
+    for t in (0, 1):
+        fixed[t] = []
+        for k, photo in enumerate(photos[t]):
+            own, other = scenes[t][k], scenes[1 - t][k]  # the same camera at both times
+            if not fit_took_it_up:
+                own, other = own * gain[t], other * gain[1 - t]
+            fixed[t].append(visit_exposure(photo, [own, other]))
+    counter = np.zeros((120, 160), bool)
+    counter[:, :25] = True  # left of the box at both cameras
+    box = np.zeros((120, 160), bool)
+    box[50:70, 70:90] = True
+    for region, changed in ((counter, False), (box, True)):
+        raw = [[p[region].mean(0) for p in photos[t]] for t in (0, 1)]
+        one = [[p[region].mean(0) for p in fixed[t]] for t in (0, 1)]
+        assert photos_differ(*raw, 3.0) is True
+        assert photos_differ(*one, 3.0) is changed
+    ratio = fixed[1][0][counter].mean() / fixed[0][0][counter].mean()
+    assert abs(ratio - 1) < 0.02
+    expected = 1.0 if fit_took_it_up else np.sqrt(2.0)  # the model's exposure, or the mean
+    assert fixed[0][0][counter].mean() / scenes[0][0][counter].mean() == pytest.approx(
+        expected, rel=0.02)
+
+
 def test_point_lookup_reference_is_local_and_outlines_are_left_out():
     """The reference of the per-point photo test is taken around each pixel: where the
     lookup is poorer (half of the view, larger differences on unchanged surface) the cut is

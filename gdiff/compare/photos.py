@@ -39,6 +39,10 @@ from .coverage import DepthView, project_to_depth
 # summing to 1) of a mean over many pixels
 _LOG_FLOOR = 0.01
 _CHROMA_FLOOR = 0.005
+# linear values a photo's exposure is not taken from (near black: noise; near white: clipped),
+# and the fewest pixels it is taken from
+_DARK, _CLIPPED = 0.005, 0.95
+_MIN_EXPOSURE_PX = 500
 
 
 @dataclass
@@ -65,6 +69,37 @@ def load_photo(path: str | Path, width: int, height: int) -> np.ndarray:
     """A photo as linear RGB float32 [height, width, 3] (area-resampled when its size differs);
     a missing or unreadable file is a :class:`~gdiff.errors.SceneError` naming it."""
     return srgb_to_linear(read_image_sized(path, width, height))
+
+
+def visit_exposure(photo: np.ndarray, renders: list[np.ndarray],
+                   valid: np.ndarray | None = None, blur: float = 1 / 320) -> np.ndarray:
+    """``photo`` (linear RGB [H, W, 3]) scaled per channel to the exposure and white balance
+    both visits' photos are compared at: by the geometric mean, over ``renders`` (linear RGB
+    [H, W, 3] each, at the photo's camera), of the median ratio of render to photo over the
+    pixels ``valid`` (bool [H, W], None: all) where neither is clipped nor near black (both
+    blurred first as in :func:`_blurred`).
+
+    Given the renders of the photo's own time and of the other time at its camera: where the
+    fit learnt a visit's exposure as a change over time (each time's render has its visit's
+    exposure), the photos of both visits come out at the mean of the two, in log; where the
+    fit's per-image correction took it up (both renders at the model's own exposure), at
+    that. A change covers a minority of a view and moves the medians little; a photo test
+    that compares means of the two visits' photos (:func:`photos_differ`) then no longer
+    sees the visits' exposure as a difference."""
+    p = np.asarray(photo, np.float32)
+    pb = _blurred(p, blur)
+    ok = (pb > _DARK).all(-1) & (pb < _CLIPPED).all(-1)
+    if valid is not None:
+        ok &= np.asarray(valid, bool)
+    logs = []
+    for r in renders:
+        rb = _blurred(np.asarray(r, np.float32), blur)
+        use = ok & (rb > _DARK).all(-1) & (rb < _CLIPPED).all(-1)
+        if use.sum() >= _MIN_EXPOSURE_PX:
+            logs.append(np.median(np.log(rb[use]) - np.log(pb[use]), 0))
+    if not logs:
+        return p
+    return p * np.exp(np.mean(logs, 0)).astype(np.float32)
 
 
 def view_means(points: np.ndarray, photos: list[KeyPhoto], tol: float, min_points: int = 3

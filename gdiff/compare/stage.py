@@ -27,7 +27,7 @@ import pandas as pd
 
 from ..errors import SceneError
 from ..frames import TIMES, Key, key_frames, read_frame, read_sequence
-from ..io import read_ids, read_json, write_csv, write_mask
+from ..io import read_ids, read_json, srgb_to_linear, write_csv, write_mask
 from ..log import progress
 from ..parallel import ordered_map
 from ..segment.base import ALPHA_MIN
@@ -39,7 +39,7 @@ from .coverage import DepthView, observed, surface
 from .geometry import (GeometryEvidence, flat_flags, pixel_scale, pose_flags, pose_record,
                        write_evidence)
 from .photos import (KeyPhoto, alike_components, load_photo, point_photo_counts,
-                     region_photos_differ)
+                     region_photos_differ, visit_exposure)
 from .spread import count_voxels, object_voxels, spread_masks, voxel_keys
 
 log = logging.getLogger("gdiff.compare")
@@ -674,6 +674,30 @@ def _rims(flat: GeometryEvidence, masks, n: int, band: int) -> np.ndarray:
     return np.flatnonzero(near >= 0.9 * np.maximum(new, 1))
 
 
+def _key_photos_at_one_exposure(keys: dict[tuple[str, int], int], meta: dict, photo_root: Path,
+                                get, alpha_min: float) -> dict[tuple[str, int], np.ndarray]:
+    """The key frames' photos (linear RGB float32 at their frame's size, read from
+    ``photo_root`` / the frame's ``image``), each brought to the exposure both visits are
+    compared at by the renders of both times at its camera
+    (:func:`gdiff.compare.photos.visit_exposure`; only pixels with opacity >= ``alpha_min``
+    at both times): auto exposure differs between visits. ``get``: key -> frame dict."""
+    photos = {}
+    for (p, i), t in sorted(keys.items()):
+        own = get((p, TIMES[t], i))
+        image, depth = meta[p][i].get("image"), own.get("depth")
+        if not image or depth is None:
+            continue
+        photo = load_photo(photo_root / image, depth.shape[1], depth.shape[0])
+        frames = [own, get((p, TIMES[1 - t], i))]
+        drawn = [srgb_to_linear(f["rgb"]) for f in frames
+                 if f.get("rgb") is not None and f["rgb"].shape == photo.shape]
+        valid = [f["alpha"] >= alpha_min for f in frames
+                 if f.get("alpha") is not None and f["alpha"].shape == depth.shape]
+        photos[(p, i)] = visit_exposure(photo, drawn,
+                                        np.logical_and.reduce(valid) if valid else None)
+    return photos
+
+
 def compare(instances_dir, poses_json, out_dir, options: CompareOptions | None = None,
             workers: int = 1, photo_root=None) -> dict:
     """Stage ``compare``: change masks of every pose from the tracked IDs.
@@ -688,8 +712,9 @@ def compare(instances_dir, poses_json, out_dir, options: CompareOptions | None =
     mask paths relative to the parent of ``out_dir``, i.e. results/<scene>/). ``workers``:
     processes the poses are judged on (the files do not depend on it). ``photo_root``: the
     folder the key frames' ``image`` names are relative to (:func:`gdiff.cameras.image_root`);
-    with it the training photos check the flat evidence, confirm objects and complete the key
-    frames' masks (``compare_paths``' ``photos``).
+    with it the training photos, brought to one exposure for both visits
+    (:func:`_key_photos_at_one_exposure`), check the flat evidence, confirm objects and
+    complete the key frames' masks (``compare_paths``' ``photos``).
     Pixels whose rendered opacity is below the segmenter's ``alpha_min`` (recorded in
     ``index.json``; :data:`gdiff.segment.base.ALPHA_MIN` when an older index lacks it) show no
     surface and are not judged (``compare_paths``' ``alpha_min``).
@@ -729,12 +754,8 @@ def compare(instances_dir, poses_json, out_dir, options: CompareOptions | None =
     o = options or CompareOptions()
     if photo_root is not None and (o.flat_photo_contrast > 0 or o.complete_reach > 0
                                    or o.confirm_photo > 0):
-        photos = {}
-        for (p, i), t in sorted(keys.items()):
-            image, depth = meta[p][i].get("image"), keyed[(p, TIMES[t], i)].get("depth")
-            if image and depth is not None:
-                photos[(p, i)] = load_photo(Path(photo_root) / image, depth.shape[1],
-                                            depth.shape[0])
+        photos = _key_photos_at_one_exposure(keys, meta, Path(photo_root), load,
+                                             index.get("alpha_min", ALPHA_MIN))
     masks, df = compare_paths(ids, load, options, keys=keys, workers=workers, photos=photos,
                               alpha_min=index.get("alpha_min", ALPHA_MIN))
     root = out_dir.parent

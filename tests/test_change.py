@@ -197,8 +197,13 @@ def test_stage_files(demo_paths, tmp_path, monkeypatch):
     assert summary["changed"] >= 1
     kf = pd.read_csv(res / "change" / "keyframes.csv")
     assert list(kf.columns) == ["path", "frame", "image", "set", "time", "mask_t0", "mask_t1",
-                                "mask_union"]
+                                "mask_union", "judged"]
     assert list(kf["frame"]) == [0, 3] and (kf["time"] == 0).all()
+    # where the stage could judge (coverage.csv, the judged maps): only against photos of both
+    # times; this path has photos of one time, so every pixel was compared and none is listed
+    cov = pd.read_csv(res / "change" / "coverage.csv")
+    assert list(cov.columns) == cmp_stage.COVERAGE_COLUMNS and cov.empty
+    assert kf["judged"].isna().all() and not (res / "change" / "p1" / "judged").exists()
     m = read_mask(res / kf["mask_union"].iloc[1])
     assert m.any() and (m == (read_mask(res / kf["mask_t0"].iloc[1])
                               | read_mask(res / kf["mask_t1"].iloc[1]))).all()
@@ -582,6 +587,20 @@ def test_unobserved_region_is_not_a_change(caplog):
     assert 2 not in df.index or not df.loc[2, "changed"]  # never judged: nothing saw it
     m0, m1 = masks[("p1", 0)]
     assert m1[10:25, 40:50].all() and not m1[10:25, 5:15].any() and not m0.any()
+    # and the results say where: p1's judged map is "not judged" on the columns the after
+    # photo (p2, 4 m aside) does not show, on the blob among them, and judged where both
+    # photos look; the coverage table has the log's share
+    from gdiff.compare.coverage import JUDGED_SEEN, NOT_JUDGED
+    jd = df.attrs["judged"][("p1", 0)]
+    assert jd.shape == (H, W) and jd.dtype == np.uint8
+    assert (jd[:, :20] == NOT_JUDGED).all() and (jd[10:25, 5:15] == NOT_JUDGED).all()
+    assert (jd[:, 36:] >= JUDGED_SEEN).mean() > 0.9
+    cov = df.attrs["coverage"].set_index(["path", "frame"])
+    assert list(cov["key"]) == [0, 1]
+    row = cov.loc[("p1", 0)]
+    assert row["surface"] == H * W and row["seen"] == (jd >= JUDGED_SEEN).sum()
+    total = cov[["surface", "seen"]].sum()
+    assert 100 * total["seen"] / total["surface"] == pytest.approx(float(m[1]), abs=0.05)
 
 
 def test_semi_transparent_object_is_judged_above_alpha_min():

@@ -75,10 +75,18 @@ def test_tiny_end_to_end_with_sigkill_and_local_cluster(tmp_path):
                 "fit/train_log.csv", "fit/quality.csv", "sequence/poses.json",
                 "render/frames.json", "render/p1/t0_sheet.png", "instances/index.json",
                 "change/keyframes.csv", "change/changes.csv", "change/candidates.csv",
-                "change/evidence3d.npz",
+                "change/evidence3d.npz", "change/coverage.csv",
                 "partition/model.pt",
                 "partition/changed.ply", "partition/unchanged.ply", "eval/metrics.csv"]:
         assert (res / rel).exists(), rel
+    # where compare could judge: a map at every key pose, a row per pose
+    kf = pd.read_csv(res / "change/keyframes.csv")
+    cov = pd.read_csv(res / "change/coverage.csv")
+    assert kf["judged"].notna().all() and all((res / f).exists() for f in kf["judged"])
+    assert len(cov) == len(list((res / "change").glob("*/union/*.png")))  # every pose
+    assert ((cov["depth"] <= cov["seen"]) & (cov["seen"] <= cov["surface"])).all()
+    keyed = cov.dropna(subset=["key"])
+    assert set(zip(keyed["path"], keyed["frame"])) == set(zip(kf["path"], kf["frame"]))
     # the EXR frames are temporary: deleted once segment and compare have read them
     assert not (res / "render/p1/t0").exists() and not (res / "render/p2/t1").exists()
     log = pd.read_csv(res / "fit/train_log.csv")

@@ -206,6 +206,37 @@ def surface(depth: np.ndarray, alpha: np.ndarray | None = None,
     return out
 
 
+#: levels of a judged map (:func:`judged_map`, ``change/<path>/judged/NNNNN.png``)
+NO_SURFACE, NOT_JUDGED, JUDGED_SEEN, JUDGED_DEPTH = 0, 64, 128, 255
+
+
+def judged_map(surfaces: np.ndarray, shown: np.ndarray, known: np.ndarray) -> np.ndarray:
+    """uint8 [H, W]: how the compare stage could judge each pixel of a pose.
+
+    ``surfaces`` bool [H, W]: a surface is rendered there at both times (:func:`surface`);
+    ``shown``: a photo of each time shows it (:func:`observed`'s second mask, both times);
+    ``known``: its depth is observed at both times (:func:`observed`'s first mask, both
+    times). Levels: :data:`NO_SURFACE` (no surface at one of the times: nothing to compare),
+    :data:`NOT_JUDGED` (a surface no photo of one of the times shows: the model there is a
+    guess, and no change is marked by the ID comparison), :data:`JUDGED_SEEN` (judged by its
+    IDs and appearance) and :data:`JUDGED_DEPTH` (judged also by its depth)."""
+    surfaces = np.asarray(surfaces, bool)
+    out = np.full(surfaces.shape, NO_SURFACE, np.uint8)
+    out[surfaces] = NOT_JUDGED
+    seen = surfaces & np.asarray(shown, bool)
+    out[seen] = JUDGED_SEEN
+    out[seen & np.asarray(known, bool)] = JUDGED_DEPTH
+    return out
+
+
+def judged_counts(judged: np.ndarray) -> dict[str, int]:
+    """Pixel counts of a :func:`judged_map`: ``surface`` (a surface at both times), ``seen``
+    (judged: shown by a photo of each time) and ``depth`` (judged also by depth)."""
+    j = np.asarray(judged)
+    return {"surface": int((j != NO_SURFACE).sum()), "seen": int((j >= JUDGED_SEEN).sum()),
+            "depth": int((j == JUDGED_DEPTH).sum())}
+
+
 def observed(depth: np.ndarray, camera: Camera, views: list[DepthView], depth_tol: float = 0.05,
              min_views: int = 1, alpha: np.ndarray | None = None,
              alpha_min: float = ALPHA_MIN, min_parallax: float = 0.0,

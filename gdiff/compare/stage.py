@@ -10,8 +10,9 @@ rendered EXR frames) and ``sequence/poses.json`` (:mod:`gdiff.frames`); writes
 ``change/<path>/<t0|t1|union>/NNNNN.png`` (255 = changed), ``change/changes.csv``,
 ``change/candidates.csv`` (every changed object of the ID comparison that the 3D evidence and
 colour test judged, kept or dropped, with the figures it was judged by),
-``change/evidence3d.npz`` (the changed voxels of the 3D evidence) and, last,
-``change/keyframes.csv``.
+``change/evidence3d.npz`` (the changed voxels of the 3D evidence), ``change/coverage.csv`` and
+``change/<path>/judged/NNNNN.png`` (where the photos let each pose be judged:
+:func:`gdiff.compare.coverage.judged_map`) and, last, ``change/keyframes.csv``.
 """
 
 from __future__ import annotations
@@ -27,7 +28,7 @@ import pandas as pd
 
 from ..errors import SceneError
 from ..frames import TIMES, Key, key_frames, read_frame, read_sequence
-from ..io import read_ids, read_json, srgb_to_linear, write_csv, write_mask
+from ..io import read_ids, read_json, srgb_to_linear, write_csv, write_image, write_mask
 from ..log import progress
 from ..parallel import ordered_map
 from ..segment.base import ALPHA_MIN
@@ -35,7 +36,7 @@ from ..track import world_points
 from .change import (HIDDEN_SHARE, CompareOptions, appearance_change, change_masks, decide,
                      pose_stats, replaced)
 from .complete import complete_key_masks, key_differences
-from .coverage import DepthView, observed, surface
+from .coverage import DepthView, judged_counts, judged_map, observed, surface
 from .geometry import (GeometryEvidence, flat_flags, pixel_scale, pose_flags, pose_record,
                        write_evidence)
 from .photos import (KeyPhoto, alike_components, load_photo, point_photo_counts,
@@ -75,8 +76,9 @@ def _key_photos(get, keys: dict[tuple[str, int], int], photos: dict) -> list[Key
 
 class _JudgePose:
     """The per-pose part of :func:`compare_paths` (depends on that pose alone, so poses can be
-    judged in parallel): called with ``(path, i)``, returns ``(stats entry, judged pixel counts
-    or None, geometry record or None, flat record or None)``. ``key_photos`` (list of
+    judged in parallel): called with ``(path, i)``, returns ``(stats entry, judged map (uint8
+    [H, W], :func:`judged_map`) or None, geometry record or None, flat record or None, the key
+    pose's (observed, shown) masks or None)``. ``key_photos`` (list of
     :class:`KeyPhoto`, optional): the training photos, asked whether the two times differ on
     a region only seen (:func:`gdiff.compare.change.pose_stats`)."""
 
@@ -122,8 +124,7 @@ class _JudgePose:
         if all(m is not None for m in obs + shown):
             both = (surface(f0["depth"], f0.get("alpha"), self.alpha_min)
                     & surface(f1["depth"], f1.get("alpha"), self.alpha_min))
-            judged = np.array([int(both.sum()), int(shown_both.sum()),
-                               int((obs[0] & obs[1]).sum())], np.int64)
+            judged = judged_map(both, shown_both, obs[0] & obs[1])
         differ = None  # the pose's appearance change: the evidence needs it, the IDs may
         if evidence and f0.get("rgb") is not None and f1.get("rgb") is not None:
             differ = appearance_change(f0["rgb"], f1["rgb"], o.chroma_tol, o.ncc_min)
@@ -192,7 +193,7 @@ def compare_paths(ids: dict[Key, np.ndarray], frames: dict[Key, dict] | None,
     poses = sorted({(p, i) for p, _, i in ids})
     views = key_views(get, keys, o.observed_window) if keys else None
     stats = []
-    judged = np.zeros(3, np.int64)  # pixels with a surface at both times; seen; observed
+    judged = {}  # pose -> uint8 [H, W] judged map (coverage.judged_map)
     geo = (GeometryEvidence(o.geometry_voxel_px, o.geometry_vote, o.geometry_min_poses,
                             o.geometry_min_object) if o.geometry else None)
     flat = (GeometryEvidence(o.geometry_voxel_px, o.geometry_vote, o.geometry_min_poses,
@@ -215,18 +216,20 @@ def compare_paths(ids: dict[Key, np.ndarray], frames: dict[Key, dict] | None,
             if kn[1] is not None:
                 shown[pose] = kn[1]
         if jd is not None:
-            judged += jd
+            judged[pose] = jd
         if g_rec is not None:
             geo.put(pose, g_rec)
         if f_rec is not None:
             flat.put(pose, f_rec)
-    if judged[0]:
+    coverage = coverage_table(judged, keys)
+    total = coverage[["surface", "seen", "depth"]].sum()
+    if total["surface"]:
         log.info("coverage: a photo of each time shows %.1f %% of the rendered surface (judged "
                  "by ID and appearance); its depth is observed (>= %d key views per time, "
                  "%.0f deg apart) on %.1f %% (judged also by depth); the other %.1f %% is not "
-                 "judged", 100 * judged[1] / judged[0], o.observed_min_views,
-                 o.observed_min_parallax, 100 * judged[2] / judged[0],
-                 100 - 100 * judged[1] / judged[0])
+                 "judged", 100 * total["seen"] / total["surface"], o.observed_min_views,
+                 o.observed_min_parallax, 100 * total["depth"] / total["surface"],
+                 100 - 100 * total["seen"] / total["surface"])
     df = decide(stats, o)
     g_geo = geo.finish() if geo is not None else None
     g_flat = flat.finish(max_rate=o.flat_max_rate) if flat is not None else None
@@ -306,7 +309,36 @@ def compare_paths(ids: dict[Key, np.ndarray], frames: dict[Key, dict] | None,
     log.info("compared %d poses: %d of %d IDs changed (%s)", len(poses), len(changed), len(df),
              ", ".join(f"{t}: {(df['type'] == t).sum()}" for t in ("added", "removed", "moved")))
     df.attrs["evidence3d"] = evidence
+    df.attrs["judged"] = judged
+    df.attrs["coverage"] = coverage
     return masks, df
+
+
+COVERAGE_COLUMNS = ["path", "frame", "key", "surface", "seen", "depth", "seen_frac",
+                    "depth_frac", "not_judged_frac"]
+
+
+def coverage_table(judged: dict[tuple[str, int], np.ndarray],
+                   keys: dict[tuple[str, int], int] | None = None) -> pd.DataFrame:
+    """One row per pose of the judged maps ``judged`` ({(path, i): uint8 [H, W],
+    :func:`gdiff.compare.coverage.judged_map`}): ``path``, ``frame``, ``key`` (the time of the
+    training photo taken there, 0 or 1, or empty), the pixel counts ``surface`` (a surface at
+    both times), ``seen`` (judged: shown by a photo of each time) and ``depth`` (judged also by
+    depth), and ``seen_frac``, ``depth_frac`` and ``not_judged_frac`` (shares of ``surface``;
+    empty when it is 0). Columns :data:`COVERAGE_COLUMNS`."""
+    rows = []
+    for (p, i), jd in sorted(judged.items()):
+        c = judged_counts(jd)
+        n = c["surface"]
+        rows.append(dict(path=p, frame=int(i), key=(keys or {}).get((p, i)), **c,
+                         seen_frac=c["seen"] / n if n else None,
+                         depth_frac=c["depth"] / n if n else None,
+                         not_judged_frac=1 - c["seen"] / n if n else None))
+    df = pd.DataFrame(rows, columns=COVERAGE_COLUMNS)
+    df["key"] = df["key"].astype("Int64")
+    for c in ("surface", "seen", "depth"):
+        df[c] = df[c].astype(np.int64)
+    return df
 
 
 def _key_voxel(get, keys: dict[tuple[str, int], int], o: CompareOptions) -> float | None:
@@ -706,10 +738,13 @@ def compare(instances_dir, poses_json, out_dir, options: CompareOptions | None =
     for the depth evidence) and the key frames of ``poses_json`` (the training cameras: only
     pixels a photo of each time saw are compared, :mod:`gdiff.compare.coverage`); writes ``out_dir/<path>/<t0|t1|union>/NNNNN.png``,
     ``out_dir/changes.csv`` (id, type, partner, first/last pose, area, instance: the object a
-    changed ID is a piece of, x, y, z, size: where it is in the cameras' world frame, ...) and
-    last
-    ``out_dir/keyframes.csv`` (path, frame, image, set, time, mask_t0, mask_t1, mask_union;
-    mask paths relative to the parent of ``out_dir``, i.e. results/<scene>/). ``workers``:
+    changed ID is a piece of, x, y, z, size: where it is in the cameras' world frame, ...),
+    ``out_dir/coverage.csv`` (per pose, how much of it the photos of both times let be judged:
+    :func:`coverage_table`) with ``out_dir/<path>/judged/NNNNN.png``
+    (:func:`gdiff.compare.coverage.judged_map`; both only when the key frames hold photos of
+    both times) and, last, ``out_dir/keyframes.csv`` (path, frame, image, set, time, mask_t0,
+    mask_t1, mask_union, judged: the pose's judged map or empty; paths relative to the parent
+    of ``out_dir``, i.e. results/<scene>/). ``workers``:
     processes the poses are judged on (the files do not depend on it). ``photo_root``: the
     folder the key frames' ``image`` names are relative to (:func:`gdiff.cameras.image_root`);
     with it the training photos, brought to one exposure for both visits
@@ -759,6 +794,7 @@ def compare(instances_dir, poses_json, out_dir, options: CompareOptions | None =
     masks, df = compare_paths(ids, load, options, keys=keys, workers=workers, photos=photos,
                               alpha_min=index.get("alpha_min", ALPHA_MIN))
     root = out_dir.parent
+    judged = df.attrs.get("judged", {})
     rows = []
     for (p, i), (m0, m1) in sorted(masks.items()):
         rel = {}
@@ -766,17 +802,32 @@ def compare(instances_dir, poses_json, out_dir, options: CompareOptions | None =
             f = out_dir / p / name / f"{i:05d}.png"
             write_mask(f, m)
             rel[name] = os.path.relpath(f, root)
+        rel["judged"] = ""
+        if (p, i) in judged:
+            f = out_dir / p / "judged" / f"{i:05d}.png"
+            write_image(f, judged[(p, i)])
+            rel["judged"] = os.path.relpath(f, root)
         if (p, i) in keys:
             fr = meta[p][i]
             rows.append(dict(path=p, frame=i, image=fr.get("image", ""), set=fr.get("set") or "",
                              time=keys[(p, i)], mask_t0=rel["t0"], mask_t1=rel["t1"],
-                             mask_union=rel["union"]))
+                             mask_union=rel["union"], judged=rel["judged"]))
+    coverage = df.attrs.get("coverage", pd.DataFrame(columns=COVERAGE_COLUMNS))
+    write_csv(out_dir / "coverage.csv", coverage)
+    if len(coverage):
+        keyed = coverage.dropna(subset=["key"])
+        log.info("where the photos let each pose be judged: %s (per pose; at the key poses %.1f "
+                 "%% of the surface not judged on average, %.1f %% at most) and %s (0: no "
+                 "surface, 64: not judged, 128: judged by ID and appearance, 255: also by "
+                 "depth)", out_dir / "coverage.csv",
+                 100 * keyed["not_judged_frac"].mean(), 100 * keyed["not_judged_frac"].max(),
+                 out_dir / "<path>" / "judged")
     write_evidence(out_dir / "evidence3d.npz", df.attrs.get("evidence3d", {}))
     write_csv(out_dir / "candidates.csv",
               df.attrs.get("candidates", pd.DataFrame(columns=CANDIDATE_COLUMNS)))
     write_csv(out_dir / "changes.csv", df[df["changed"]].drop(columns=["changed"]))
     write_csv(out_dir / "keyframes.csv", pd.DataFrame(rows, columns=[
-        "path", "frame", "image", "set", "time", "mask_t0", "mask_t1", "mask_union"]))
+        "path", "frame", "image", "set", "time", "mask_t0", "mask_t1", "mask_union", "judged"]))
     counts = df.loc[df["changed"], "type"].value_counts().to_dict()
     return {"poses": len(masks), "changed": int(df["changed"].sum()),
             "instances": int(df.loc[df["changed"], "instance"].nunique()), **counts}

@@ -34,6 +34,7 @@ rule compare:
         changes=res("{scene}", "change", "changes.csv"),
         candidates=res("{scene}", "change", "candidates.csv"),
         evidence=res("{scene}", "change", "evidence3d.npz"),
+        coverage=res("{scene}", "change", "coverage.csv"),
     params:
         options=options("compare"),
     threads: 2

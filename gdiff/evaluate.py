@@ -40,8 +40,10 @@ Outputs in ``out_dir`` (``results/<scene>/eval/``), all written atomically:
   without boxes; pixel and object columns empty for box views);
 * ``boxes.csv`` — every predicted and ground-truth box (for AP pooled over views; ``kind``
   ``pred`` or ``gt``) and, per method, every box of ``eval/boxes.json`` (``kind`` ``gt_box``:
-  ``core`` the fraction of its core predicted changed, ``matched`` whether it is found), so a
-  missed box shows by how much it was missed;
+  ``core`` the fraction of its core predicted changed, ``matched`` whether it is found, and at
+  a training image ``judged``, the fraction of its core the compare stage could judge, from
+  its ``change/<path>/judged/`` map), so a missed box shows by how much it was missed and
+  whether the photos of both visits showed it at all;
 * ``fit_quality.csv`` — PSNR of the fitted model at each eval view, t=0 vs ``eval/before`` and
   t=1 vs ``eval/after`` (:func:`render_quality`; written by :func:`evaluate_workflow_scene`);
 * ``scene_summary.csv`` — per method: mean over views and pooled figures (``obj_R_pooled``:
@@ -543,10 +545,12 @@ def model_depth(model: Any) -> Callable[[Camera, float], np.ndarray]:
 def evaluate_workflow_scene(scene_dir: str | Path, cameras_json: str | Path,
                             partition_model: str | Path, out_dir: str | Path, scene_name: str,
                             options: EvalOptions, segment_options: dict | None = None,
-                            device: str = "auto", evidence: str | Path | None = None
-                            ) -> pd.DataFrame:
+                            device: str = "auto", evidence: str | Path | None = None,
+                            keyframes: str | Path | None = None) -> pd.DataFrame:
     """The ``evaluate`` rule: load the partition model (whose fitted 4D model also renders any
-    eval image a dataset lacks) and score every method of ``options.methods`` side by side."""
+    eval image a dataset lacks) and score every method of ``options.methods`` side by side.
+    ``keyframes``: the compare stage's ``change/keyframes.csv``, for where it could judge the
+    boxes of a training image (:func:`judged_maps`)."""
     from .options import from_config
     from .partition import load_partition_model  # lazy: stage module
     from .segment import SegmentOptions
@@ -557,7 +561,8 @@ def evaluate_workflow_scene(scene_dir: str | Path, cameras_json: str | Path,
     methods = build_methods(options, pmodel=pmodel, render=render,
                             depth=model_depth(pmodel.fit), evidence=evidence,
                             segment_options=seg)
-    df = evaluate_scene(scene_dir, cameras_json, out_dir, scene_name, methods, options)
+    df = evaluate_scene(scene_dir, cameras_json, out_dir, scene_name, methods, options,
+                        judged=judged_maps(keyframes) if keyframes is not None else None)
     q = render_quality(find_eval_views(scene_dir, cameras_json), render)
     write_csv(Path(out_dir) / "fit_quality.csv", q)
     for t, g in q.groupby("time"):
@@ -590,13 +595,16 @@ def render_quality(views: list[EvalView], render: Callable[[Camera, float], np.n
 
 
 def evaluate_scene(scene_dir: str | Path, cameras_json: str | Path | None, out_dir: str | Path,
-                   scene_name: str, methods: dict[str, Callable], options: EvalOptions
-                   ) -> pd.DataFrame:
+                   scene_name: str, methods: dict[str, Callable], options: EvalOptions,
+                   judged: dict[str, Path] | None = None) -> pd.DataFrame:
     """Score every method at every eval view; write the outputs listed in the module docstring.
 
     ``methods``: name -> ``f(view: EvalView) -> bool mask [H, W]`` (or ``(mask, prob)``,
     ``{"mask", "prob"}``, :class:`gdiff.baselines.Prediction`); a prediction of another size
-    than the ground truth is resized (nearest) with a warning. Returns the metrics table.
+    than the ground truth is resized (nearest) with a warning. ``judged`` (optional): box view
+    name -> the compare stage's judged map at that training image (:func:`judged_maps`); with
+    it each of the view's boxes gets the share of its core the compare stage could judge
+    (``boxes.csv``, column ``judged``). Returns the metrics table.
     """
     out_dir = Path(out_dir)
     views = find_eval_views(image_root(scene_dir, cameras_json), cameras_json, scene_dir)
@@ -609,6 +617,8 @@ def evaluate_scene(scene_dir: str | Path, cameras_json: str | Path | None, out_d
         gt_boxes = view.boxes_at_scored_size()
         margin = options.box_margin * (view.box_px * w / view.box_size[0] if view.box_size
                                        else 1.0)
+        box_judged = (_judged_share(judged[view.name], gt_boxes, (h, w), options)
+                      if gt_boxes is not None and judged and view.name in judged else None)
         preds: dict[str, Prediction] = {}
         for name, fn in methods.items():
             if gt is None and name not in CAMERA_METHODS:
@@ -631,7 +641,7 @@ def evaluate_scene(scene_dir: str | Path, cameras_json: str | Path | None, out_d
             if gt_boxes is not None:
                 scores.update(gt_box_scores(pred.mask, gt_boxes, options.box_core,
                                             options.object_found_fraction, margin))
-                box_frames.append(_gt_box_rows(pred.mask, gt_boxes, options).assign(
+                box_frames.append(_gt_box_rows(pred.mask, gt_boxes, options, box_judged).assign(
                     scene=scene_name, view=view.name, method=name))
             rows.append({"scene": scene_name, "view": view.name, "method": name, **scores,
                          "seconds": seconds})
@@ -645,7 +655,7 @@ def evaluate_scene(scene_dir: str | Path, cameras_json: str | Path | None, out_d
                                       [r for r in rows if r["view"] == view.name]))
     df = pd.DataFrame(rows, columns=METRIC_COLUMNS)
     box_cols = ["scene", "view", "method", "kind", "x0", "y0", "x1", "y1", "score", "matched",
-                "iou", "core"]
+                "iou", "core", "judged"]
     frames = [f for f in box_frames if len(f)]
     boxes = (pd.concat(frames, ignore_index=True).reindex(columns=box_cols) if frames
              else pd.DataFrame(columns=box_cols))
@@ -660,19 +670,62 @@ def evaluate_scene(scene_dir: str | Path, cameras_json: str | Path | None, out_d
             log.info("%s %s: %d of %d boxes found, %.3f of the image flagged far from any box",
                      scene_name, m, int(g["gtbox_found"].sum()), int(g["gtbox_N"].sum()),
                      g["far_FP"].sum() / max(g["far_N"].sum(), 1))
+            gb = boxes[(boxes["kind"] == "gt_box") & (boxes["method"] == m)]
+            gb = gb.assign(box=gb.groupby("view").cumcount())  # its place in boxes.json
+            blind = gb[gb["matched"].eq(False) & (gb["judged"] < 0.5)]
+            if len(blind):
+                log.info("%s %s: %d of the missed boxes lie mostly where the compare stage "
+                         "could not judge (no photo of one of the visits shows them; "
+                         "boxes.csv, column judged): %s", scene_name, m, len(blind),
+                         ", ".join(f"{v} box {b}" for v, b in zip(blind["view"], blind["box"])))
     return df
 
 
-def _gt_box_rows(pred: np.ndarray, boxes: np.ndarray, options: EvalOptions) -> pd.DataFrame:
+def judged_maps(keyframes_csv: str | Path) -> dict[str, Path]:
+    """The compare stage's judged maps at the training images: ``{box view name (the image's
+    path without extension, e.g. "after/v00"): map path}`` from ``change/keyframes.csv``
+    (column ``judged``; :func:`gdiff.compare.coverage.judged_map`). Empty when the file has no
+    such column or no map (a scene with photos of one time only)."""
+    path = Path(keyframes_csv)
+    kf = pd.read_csv(path)
+    if "judged" not in kf:
+        return {}
+    root = path.parent.parent  # paths in keyframes.csv are relative to results/<scene>/
+    return {str(Path(img).with_suffix("").as_posix()): root / j
+            for img, j in zip(kf["image"], kf["judged"])
+            if isinstance(img, str) and isinstance(j, str) and j}
+
+
+def _judged_share(path: Path, boxes: np.ndarray, shape: tuple[int, int],
+                  options: EvalOptions) -> np.ndarray:
+    """float [K]: per box (xyxy pixels of a map of ``shape``), the share of its core that the
+    judged map at ``path`` (resized, nearest) says the compare stage judged
+    (>= :data:`gdiff.compare.coverage.JUDGED_SEEN`)."""
+    from .compare.coverage import JUDGED_SEEN
+
+    m = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    if m is None:
+        raise SceneError(f"{path}: judged map cannot be read (missing or corrupt); re-run "
+                         "compare")
+    h, w = shape
+    if m.shape != (h, w):
+        m = cv2.resize(m, (w, h), interpolation=cv2.INTER_NEAREST)
+    b = np.asarray(boxes, np.float64).reshape(-1, 4)
+    return gt_box_cores(m >= JUDGED_SEEN, b, options.box_core, options.object_found_fraction)[0]
+
+
+def _gt_box_rows(pred: np.ndarray, boxes: np.ndarray, options: EvalOptions,
+                 judged: np.ndarray | None = None) -> pd.DataFrame:
     """The rows of ``boxes.csv`` for the boxes of ``eval/boxes.json`` at one view and method:
     ``kind`` ``gt_box``, the box (xyxy pixels of the scored map), ``core`` the fraction of its
-    core marked changed by ``pred`` [H, W] and ``matched`` whether that makes it found
-    (:func:`gdiff.metrics.gt_box_cores`); ``score`` and ``iou`` are empty."""
+    core marked changed by ``pred`` [H, W], ``matched`` whether that makes it found
+    (:func:`gdiff.metrics.gt_box_cores`) and ``judged`` (float [K] or empty: the share of its
+    core the compare stage judged, :func:`_judged_share`); ``score`` and ``iou`` are empty."""
     b = np.asarray(boxes, np.float64).reshape(-1, 4)
     core, found = gt_box_cores(pred, b, options.box_core, options.object_found_fraction)
     return pd.DataFrame({"kind": "gt_box", "x0": b[:, 0], "y0": b[:, 1], "x1": b[:, 2],
                          "y1": b[:, 3], "score": np.nan, "matched": found, "iou": np.nan,
-                         "core": core})
+                         "core": core, "judged": np.nan if judged is None else judged})
 
 
 def _box_mask(boxes: np.ndarray, shape: tuple[int, int]) -> np.ndarray:

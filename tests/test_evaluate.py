@@ -2,6 +2,7 @@
 
 import json
 import math
+import re
 
 import numpy as np
 import pandas as pd
@@ -228,7 +229,7 @@ def test_object_recall_from_before_and_after_masks(tmp_path):
         E.evaluate_scene(root, None, tmp_path / "o2", "s", {"pixel_diff": only_after}, opts)
 
 
-def test_box_ground_truth_on_eval_views_and_training_images(tmp_path):
+def test_box_ground_truth_on_eval_views_and_training_images(tmp_path, caplog):
     """eval/boxes.json in the ObChange layout: boxes of an eval view are scored beside its mask;
     boxes of a training image (after/v00.png) make a box view where only the partition is
     rendered, at that image's camera (at the image's size), and the others are skipped."""
@@ -263,7 +264,23 @@ def test_box_ground_truth_on_eval_views_and_training_images(tmp_path):
                                                render_change_map=change_map)}
     opts = E.EvalOptions(box_margin=4.0)
     out = tmp_path / "out"
-    df = E.evaluate_scene(root, root / "cameras.json", out, "s", methods, opts)
+    # the compare stage's judged map at the training image (at the render size, W x H here:
+    # twice the image's): it judged the left half only
+    jm = np.full((H, W), 64, np.uint8)
+    jm[:, : W // 2] = 128
+    write_image(tmp_path / "res" / "change" / "p2" / "judged" / "00003.png", jm)
+    pd.DataFrame([dict(path="p2", frame=3, image="after/v00.png", set="after", time=1,
+                       mask_t0="x", mask_t1="x", mask_union="x",
+                       judged="change/p2/judged/00003.png")]).to_csv(
+        tmp_path / "res" / "change" / "keyframes.csv", index=False)
+    judged = E.judged_maps(tmp_path / "res" / "change" / "keyframes.csv")
+    assert judged == {"after/v00": tmp_path / "res" / "change" / "p2" / "judged" / "00003.png"}
+    with caplog.at_level("INFO", logger="gdiff.evaluate"):
+        df = E.evaluate_scene(root, root / "cameras.json", out, "s", methods, opts,
+                              judged=judged)
+    # the missed box the compare stage never judged is named in the log
+    assert re.search(r"s partition: 1 of the missed boxes lie mostly where the compare stage "
+                     r"could not judge.*after/v00 box 1", caplog.text)
     assert (W // 2, H // 2) in seen  # rendered at the training image's size
     bv = df[df["view"] == "after/v00"]
     assert list(bv["method"]) == ["partition"]  # pixel_diff needs an eval pair: skipped
@@ -284,6 +301,10 @@ def test_box_ground_truth_on_eval_views_and_training_images(tmp_path):
     # box 1's core (x 4.5..9.5, y 4..8) lies in the marked block (x 3..11, y 3..9); box 2's
     # is not marked at all
     assert list(gb["core"]) == [1.0, 0.0]
+    # box 1 (x 2..12 of 32) where the compare stage judged, box 2 (x 20..30) where it did not;
+    # the eval view has no judged map
+    assert list(gb["judged"]) == [1.0, 0.0]
+    assert bx.loc[(bx["kind"] == "gt_box") & (bx["view"] == "001"), "judged"].isna().all()
     assert len(bx[(bx["kind"] == "gt_box") & (bx["view"] == "001")]) == 2 * len(methods)
     assert (bx["kind"] == "gt_box").sum() == 2 + 2 * len(methods)
     assert bx.loc[bx["kind"] != "gt_box", "core"].isna().all()

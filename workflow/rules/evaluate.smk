@@ -8,6 +8,7 @@ rule evaluate:
         cameras=res("{scene}", "poses", "cameras.json"),
         partition=res("{scene}", "partition", "model.pt"),
         evidence=res("{scene}", "change", "evidence3d.npz"),
+        keyframes=res("{scene}", "change", "keyframes.csv"),
     output:
         metrics=report(
             res("{scene}", "eval", "metrics.csv"),

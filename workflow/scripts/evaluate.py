@@ -12,4 +12,4 @@ run_stage(snakemake, lambda: evaluate_workflow_scene(
     scene_name=snakemake.wildcards.scene,
     options=from_config(EvalOptions, snakemake.params.options, "evaluate"),
     segment_options=snakemake.params.segment, device=snakemake.params.device,
-    evidence=snakemake.input.evidence))
+    evidence=snakemake.input.evidence, keyframes=snakemake.input.keyframes))

@@ -814,8 +814,8 @@ def compare(instances_dir, poses_json, out_dir, options: CompareOptions | None =
                              mask_union=rel["union"], judged=rel["judged"]))
     coverage = df.attrs.get("coverage", pd.DataFrame(columns=COVERAGE_COLUMNS))
     write_csv(out_dir / "coverage.csv", coverage)
-    if len(coverage):
-        keyed = coverage.dropna(subset=["key"])
+    keyed = coverage.dropna(subset=["key", "not_judged_frac"])
+    if len(keyed):
         log.info("where the photos let each pose be judged: %s (per pose; at the key poses %.1f "
                  "%% of the surface not judged on average, %.1f %% at most) and %s (0: no "
                  "surface, 64: not judged, 128: judged by ID and appearance, 255: also by "

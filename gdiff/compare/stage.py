@@ -36,7 +36,8 @@ from ..track import world_points
 from .change import (HIDDEN_SHARE, CompareOptions, appearance_change, change_masks, decide,
                      pose_stats, replaced)
 from .complete import complete_key_masks, key_differences
-from .coverage import DepthView, judged_counts, judged_map, observed, surface
+from .coverage import (JUDGED_DEPTH, JUDGED_SEEN, DepthView, judged_counts, judged_map, observed,
+                       surface)
 from .geometry import (GeometryEvidence, flat_flags, pixel_scale, pose_flags, pose_record,
                        write_evidence)
 from .photos import (KeyPhoto, alike_components, load_photo, point_photo_counts,
@@ -77,17 +78,15 @@ def _key_photos(get, keys: dict[tuple[str, int], int], photos: dict) -> list[Key
 class _JudgePose:
     """The per-pose part of :func:`compare_paths` (depends on that pose alone, so poses can be
     judged in parallel): called with ``(path, i)``, returns ``(stats entry, judged map (uint8
-    [H, W], :func:`judged_map`) or None, geometry record or None, flat record or None, the key
-    pose's (observed, shown) masks or None)``. ``key_photos`` (list of
+    [H, W], :func:`judged_map`) or None, geometry record or None, flat record or None)``.
+    ``key_photos`` (list of
     :class:`KeyPhoto`, optional): the training photos, asked whether the two times differ on
     a region only seen (:func:`gdiff.compare.change.pose_stats`)."""
 
     def __init__(self, ids, get, o: CompareOptions, views, geo_stride: int | None,
-                 flat_stride: int | None, alpha_min: float, key_photos=None,
-                 key_poses=None):
+                 flat_stride: int | None, alpha_min: float, key_photos=None):
         self.ids, self.get, self.o, self.views = ids, get, o, views
         self.key_photos = key_photos
-        self.key_poses = key_poses  # set of (path, i) whose observed depth is returned
         self.geo_stride, self.flat_stride = geo_stride, flat_stride
         self.alpha_min = alpha_min
 
@@ -140,8 +139,8 @@ class _JudgePose:
             appearance=differ, points=tuple(pts) if have_depth and need else None,
             photos_differ=photo_check))
         g_rec = f_rec = None
-        # the depth of both times observed: the evidence's pixels, and at the key poses the
-        # pixels the completion leaves alone (returned for those)
+        # the depth of both times observed: the evidence's pixels (at the key poses also in
+        # the judged map, where the completion leaves them alone)
         known = obs[0] & obs[1] if obs[0] is not None and obs[1] is not None else None
         if evidence:
             if self.geo_stride is not None:
@@ -152,8 +151,7 @@ class _JudgePose:
                 f_rec = pose_record(z0, z1, cam, *flat_flags(z0, z1, o.depth_change_rel,
                                                              o.evidence_open, known, differ),
                                     points=tuple(pts), stride=self.flat_stride)
-        key = self.key_poses is not None and pose in self.key_poses
-        return stats, judged, g_rec, f_rec, (known, shown_both) if key else None
+        return stats, judged, g_rec, f_rec
 
 
 def compare_paths(ids: dict[Key, np.ndarray], frames: dict[Key, dict] | None,
@@ -201,26 +199,21 @@ def compare_paths(ids: dict[Key, np.ndarray], frames: dict[Key, dict] | None,
     key_photos = _key_photos(get, keys, photos) if photos and keys else None
     judge = _JudgePose(ids, get, o, views, geo.stride if geo is not None else None,
                        flat.stride if flat is not None else None, alpha_min,
-                       key_photos=key_photos if o.flat_photo_contrast > 0 else None,
-                       key_poses=set(keys) if keys and photos and (
-                           o.complete_reach > 0 or o.confirm_photo > 0) else None)
+                       key_photos=key_photos if o.flat_photo_contrast > 0 else None)
     results = ordered_map(judge, poses, workers)
-    known = {}  # key pose -> bool [H, W], the depth of both times observed there
-    shown = {}  # key pose -> bool [H, W], a photo of each time shows the surface there
-    for pose, (st, jd, g_rec, f_rec, kn) in zip(poses, progress(results, desc="compare",
-                                                               total=len(poses))):
+    for pose, (st, jd, g_rec, f_rec) in zip(poses, progress(results, desc="compare",
+                                                          total=len(poses))):
         stats.append(st)
-        if kn is not None:
-            if kn[0] is not None:
-                known[pose] = kn[0]
-            if kn[1] is not None:
-                shown[pose] = kn[1]
         if jd is not None:
             judged[pose] = jd
         if g_rec is not None:
             geo.put(pose, g_rec)
         if f_rec is not None:
             flat.put(pose, f_rec)
+    # at the key poses: the depth of both times observed there (the completion leaves it
+    # alone), a photo of each time shows the surface (the photo test counts only that)
+    known = {k: m == JUDGED_DEPTH for k, m in judged.items() if keys and k in keys}
+    shown = {k: m >= JUDGED_SEEN for k, m in judged.items() if keys and k in keys}
     coverage = coverage_table(judged, keys)
     total = coverage[["surface", "seen", "depth"]].sum()
     if total["surface"]:

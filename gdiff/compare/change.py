@@ -180,6 +180,11 @@ class CompareOptions:
         (:mod:`gdiff.compare.complete`): an object cut into pieces is marked whole where the
         partition learns from. Only where the depth of both times is not observed, and not
         under a change of light. 0: off.
+    photo_agree: at a key pose, the mask of the photo's own time loses the pixels whose
+        surface a photo of the other visit shows alike: matched by optical flow both ways, on
+        the pixel's ray, and within this many times the pair's median colour difference
+        (:mod:`gdiff.compare.agree`). Where the photos of both visits agree nothing changed,
+        whatever the other time's model renders there. 0: off.
     """
 
     presence_iou: float = 0.3
@@ -216,6 +221,7 @@ class CompareOptions:
     surround_width: float = 0.05
     spread_vote: float = 0.3
     complete_reach: float = 1.0
+    photo_agree: float = 3.0
 
     def observed_step(self, height: int, width: int) -> int:
         """Pixel step of the coverage test on a ``height`` x ``width`` frame (see
@@ -251,6 +257,9 @@ class CompareOptions:
         if self.complete_reach < 0:
             raise ConfigError("config key 'compare.complete_reach' must be >= 0 (0: the key "
                               "views' masks are not completed)")
+        if self.photo_agree < 0:
+            raise ConfigError("config key 'compare.photo_agree' must be >= 0 (0: the photos of "
+                              "the two visits are not matched)")
         if self.flat_photo_contrast < 0:
             raise ConfigError("config key 'compare.flat_photo_contrast' must be >= 0 (0: the "
                               "photos are not asked)")

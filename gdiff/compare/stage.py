@@ -33,6 +33,7 @@ from ..log import progress
 from ..parallel import ordered_map
 from ..segment.base import ALPHA_MIN
 from ..track import world_points
+from .agree import agreeing
 from .change import (HIDDEN_SHARE, CompareOptions, appearance_change, change_masks, decide,
                      pose_stats, replaced)
 from .complete import complete_key_masks, key_differences
@@ -299,12 +300,47 @@ def compare_paths(ids: dict[Key, np.ndarray], frames: dict[Key, dict] | None,
             log.info("key views: %d pieces of changes grown by %d pixels over %d key frames, "
                      "where the training photo differs from the other time's render next to "
                      "them (compare.complete_reach = %g)", pieces, added, n, o.complete_reach)
+    if o.photo_agree > 0 and key_photos:  # last: it judges the key masks as they stand
+        _leave_out_agreeing(masks, key_photos, o.photo_agree, workers)
     log.info("compared %d poses: %d of %d IDs changed (%s)", len(poses), len(changed), len(df),
              ", ".join(f"{t}: {(df['type'] == t).sum()}" for t in ("added", "removed", "moved")))
     df.attrs["evidence3d"] = evidence
     df.attrs["judged"] = judged
     df.attrs["coverage"] = coverage
     return masks, df
+
+
+class _Agreeing:
+    """:func:`gdiff.compare.agree.agreeing` for one key photo against the other visit's (so
+    that the key photos can be judged in parallel)."""
+
+    def __init__(self, key_photos: list[KeyPhoto], contrast: float):
+        self.key_photos, self.contrast = key_photos, contrast
+
+    def __call__(self, own: KeyPhoto) -> np.ndarray:
+        return agreeing(own, [k for k in self.key_photos if k.time != own.time], self.contrast)
+
+
+def _leave_out_agreeing(masks, key_photos: list[KeyPhoto], contrast: float,
+                        workers: int = 1) -> None:
+    """At each key pose (in place in ``masks``, ``{(path, i): (mask_t0, mask_t1)}``), the
+    mask of the photo's own time loses the pixels whose surface a photo of the other visit
+    shows alike (:mod:`gdiff.compare.agree`): what the photo shows there did not change. The
+    other time's mask is left: it marks what that time's model draws at this pose, which the
+    photo may not show."""
+    n, removed = 0, 0
+    for kp, agree in zip(key_photos, ordered_map(_Agreeing(key_photos, contrast), key_photos,
+                                                 workers)):
+        ms = list(masks.get(kp.pose, ()))
+        if len(ms) != 2 or ms[kp.time].shape != agree.shape:
+            continue
+        n += 1
+        removed += int((ms[kp.time] & agree).sum())
+        ms[kp.time] = ms[kp.time] & ~agree
+        masks[kp.pose] = tuple(ms)
+    log.info("key views: %d changed pixels over %d key frames left out where a photo of the "
+             "other visit shows the surface alike (flow matched both ways and on the pixel's "
+             "ray; compare.photo_agree = %g)", removed, n, contrast)
 
 
 COVERAGE_COLUMNS = ["path", "frame", "key", "surface", "seen", "depth", "seen_frac",
@@ -781,7 +817,7 @@ def compare(instances_dir, poses_json, out_dir, options: CompareOptions | None =
     photos = None
     o = options or CompareOptions()
     if photo_root is not None and (o.flat_photo_contrast > 0 or o.complete_reach > 0
-                                   or o.confirm_photo > 0):
+                                   or o.confirm_photo > 0 or o.photo_agree > 0):
         photos = _key_photos_at_one_exposure(keys, meta, Path(photo_root), load,
                                              index.get("alpha_min", ALPHA_MIN))
     masks, df = compare_paths(ids, load, options, keys=keys, workers=workers, photos=photos,

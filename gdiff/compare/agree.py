@@ -1,0 +1,126 @@
+"""Where the two visits' photos agree: the pixels of a training photo whose surface a photo of
+the other visit shows alike, found without the fitted model.
+
+A sparse capture's model renders poorly from some poses, so a render of the other time can
+differ from a photo on a surface nothing happened to (a knob, a wall spot, the edge of a
+shelf), and the ID comparison may keep it by its colour. Two photos of the two visits taken
+from nearby places settle it directly. The other photo is matched to the key photo by dense
+optical flow (OpenCV DIS, both ways); a pixel agrees when
+
+- the match is consistent both ways (forward then backward flow returns within ``fb_tol``
+  pixels): on a changed object the other photo has nothing to match, and the flow fails there;
+- the match lies where a static point on the pixel's ray can appear in the other photo: on
+  the image of the ray from half the rendered depth to infinity, within a tolerance taken
+  from the pair itself (``max(2 px, 3 x`` the median distance of the consistent matches),
+  so that a pose error shared by the pair does not count). An object that moved between the
+  visits matches off that segment. A pair whose consistent matches lie off it by more than
+  ``max_pose_error`` of the image width (views too far apart for the flow, or poses too far
+  off) says nothing;
+- the colours agree: the other photo, warped by the flow and scaled per channel by the median
+  ratio over the consistent matches (exposure), differs from the key photo by less than
+  ``contrast`` times the median difference of those matches (their noise floor).
+
+The test can only say "unchanged": where the flow fails (a changed object, a textureless wall
+it cannot lock onto, a specular sink) nothing is decided.
+
+Coordinates: cameras are camera-to-world (OpenCV axes: x right, y down, z forward; pixel
+centres at +0.5); depth is camera-frame z, as in the EXR ``Z`` channel; photos are linear RGB.
+"""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+
+from ..io import linear_to_srgb
+from .photos import KeyPhoto
+
+# fewest consistent matches a pair must have to say anything
+_MIN_MATCHES = 100
+
+
+def _grey8(photo: np.ndarray) -> np.ndarray:
+    """uint8 [H, W] sRGB luma of a linear RGB photo [H, W, 3] (the flow's input)."""
+    s = np.clip(linear_to_srgb(np.asarray(photo, np.float32)), 0, 1)
+    return np.round(255 * (s @ np.array([0.299, 0.587, 0.114], np.float32))).astype(np.uint8)
+
+
+def ray_segment_distance(cam_a, cam_b, depth_a: np.ndarray, matches: np.ndarray,
+                         near: float = 0.5) -> np.ndarray:
+    """Per pixel of camera ``cam_a`` (:class:`gdiff.cameras.Camera`, camera-to-world, at the
+    size of ``depth_a``), the distance in pixels of ``matches`` (float [H, W, 2], x and y pixel
+    indices in camera ``cam_b``) from the image in ``cam_b`` of the pixel's ray between
+    ``near`` times its depth ``depth_a`` (float [H, W], camera-frame z; NaN or <= 0: the
+    median valid depth) and infinity. Both cameras must have the same pixel grid convention
+    (centres at +0.5)."""
+    h, w = depth_a.shape
+    T = cam_b.w2c @ cam_a.c2w  # camera a -> camera b
+    R, t = T[:3, :3], T[:3, 3]
+    col, row = np.meshgrid(np.arange(w, dtype=np.float64) + 0.5,
+                           np.arange(h, dtype=np.float64) + 0.5)
+    rays = np.stack([col, row, np.ones_like(col)], -1).reshape(-1, 3) @ np.linalg.inv(cam_a.K).T
+    d = np.asarray(depth_a, np.float64).reshape(-1)
+    good = np.isfinite(d) & (d > 0)
+    d = np.where(good, d, np.median(d[good]) if good.any() else 1.0)
+    Kb = cam_b.K
+    far = (rays @ R.T) @ Kb.T  # the vanishing point of each ray (depth -> infinity)
+    close = (near * d[:, None] * (rays @ R.T) + t) @ Kb.T
+    p_far = far[:, :2] / np.where(np.abs(far[:, 2:]) > 1e-12, far[:, 2:], 1e-12)
+    p_close = close[:, :2] / np.maximum(close[:, 2:], 1e-9)
+    # where the near end lies behind camera b, its ray's image starts at infinity's end only
+    p_close = np.where(close[:, 2:] > 1e-9, p_close, p_far)
+    q = np.asarray(matches, np.float64).reshape(-1, 2) + 0.5
+    seg = p_far - p_close
+    length = (seg * seg).sum(1)
+    s = np.clip(((q - p_close) * seg).sum(1) / np.maximum(length, 1e-12), 0, 1)
+    return np.linalg.norm(q - (p_close + s[:, None] * seg), axis=1).reshape(h, w)
+
+
+def photos_agree(own: KeyPhoto, other: KeyPhoto, contrast: float = 3.0, fb_tol: float = 2.0,
+                 max_pose_error: float = 0.01, blur: float = 2.0) -> np.ndarray | None:
+    """Bool [H, W] at ``own``'s depth size: the pixels of ``own.photo`` whose surface
+    ``other.photo`` shows alike (module docstring); None when the pair says nothing (too few
+    consistent matches, or they lie off the rays' images by more than ``max_pose_error`` of
+    the image width). ``blur``: Gaussian sigma in pixels before the colours are compared."""
+    h, w = np.shape(own.depth)
+    a = np.asarray(own.photo, np.float32)
+    b = np.asarray(other.photo, np.float32)
+    if a.shape[:2] != (h, w) or b.shape[:2] != (h, w):
+        return None
+    ga, gb = _grey8(a), _grey8(b)
+    dis = cv2.DISOpticalFlow_create(cv2.DISOPTICAL_FLOW_PRESET_MEDIUM)
+    fwd = dis.calc(ga, gb, None)
+    bwd = dis.calc(gb, ga, None)
+    col, row = np.meshgrid(np.arange(w, dtype=np.float32), np.arange(h, dtype=np.float32))
+    mx, my = col + fwd[..., 0], row + fwd[..., 1]
+    inside = (mx >= 0) & (mx <= w - 1) & (my >= 0) & (my <= h - 1)
+    back = cv2.remap(bwd, mx, my, cv2.INTER_LINEAR)
+    consistent = inside & (np.linalg.norm(fwd + back, axis=-1) < fb_tol)
+    if consistent.sum() < _MIN_MATCHES:
+        return None
+    off = ray_segment_distance(own.depth_camera(), other.depth_camera(), np.asarray(own.depth),
+                               np.stack([mx, my], -1))
+    typical = float(np.median(off[consistent]))
+    if typical > max_pose_error * w:
+        return None
+    matched = consistent & (off < max(2.0, 3.0 * typical))
+    if matched.sum() < _MIN_MATCHES:
+        return None
+    warped = cv2.remap(b, mx, my, cv2.INTER_LINEAR)
+    sa = cv2.GaussianBlur(linear_to_srgb(a), (0, 0), blur)
+    sb = cv2.GaussianBlur(linear_to_srgb(warped), (0, 0), blur)
+    gain = np.median(sa[matched], 0) / np.maximum(np.median(sb[matched], 0), 1e-4)
+    diff = np.abs(sa - sb * gain).max(-1)
+    floor = float(np.median(diff[matched]))
+    return matched & (diff <= contrast * max(floor, 1e-4))
+
+
+def agreeing(own: KeyPhoto, others: list[KeyPhoto], contrast: float = 3.0) -> np.ndarray:
+    """Bool [H, W] at ``own``'s depth size: the pixels of ``own``'s photo that at least one
+    photo of ``others`` (the other visit's key photos) shows alike (:func:`photos_agree`)."""
+    out = np.zeros(np.shape(own.depth), bool)
+    for o in others:
+        m = photos_agree(own, o, contrast)
+        if m is not None:
+            out |= m
+    return out

@@ -115,11 +115,33 @@ def photos_agree(own: KeyPhoto, other: KeyPhoto, contrast: float = 3.0, fb_tol: 
     return matched & (diff <= contrast * max(floor, 1e-4))
 
 
-def agreeing(own: KeyPhoto, others: list[KeyPhoto], contrast: float = 3.0) -> np.ndarray:
+def nearest_views(own: KeyPhoto, others: list[KeyPhoto], n: int = 3,
+                  max_angle: float = 45.0) -> list[KeyPhoto]:
+    """The ``n`` photos of ``others`` taken nearest to ``own``'s: ranked by the distance between
+    the camera centres over the median depth ``own`` renders (its scene scale) plus the angle
+    between the viewing directions in radians; only those within ``max_angle`` degrees of
+    ``own``'s viewing direction (others cannot show much of the same surface)."""
+    d = np.asarray(own.depth, np.float64)
+    good = np.isfinite(d) & (d > 0)
+    scale = float(np.median(d[good])) if good.any() else 1.0
+    za = own.camera.c2w[:3, 2]
+    ranked = []
+    for k, o in enumerate(others):
+        cos = float(np.clip(za @ o.camera.c2w[:3, 2], -1.0, 1.0))
+        angle = np.arccos(cos)
+        if np.degrees(angle) > max_angle:
+            continue
+        ranked.append((np.linalg.norm(own.camera.center - o.camera.center) / scale + angle, k))
+    return [others[k] for _, k in sorted(ranked)[:n]]
+
+
+def agreeing(own: KeyPhoto, others: list[KeyPhoto], contrast: float = 3.0,
+             n_views: int = 3) -> np.ndarray:
     """Bool [H, W] at ``own``'s depth size: the pixels of ``own``'s photo that at least one
-    photo of ``others`` (the other visit's key photos) shows alike (:func:`photos_agree`)."""
+    photo of ``others`` (the other visit's key photos; the ``n_views`` nearest,
+    :func:`nearest_views`) shows alike (:func:`photos_agree`)."""
     out = np.zeros(np.shape(own.depth), bool)
-    for o in others:
+    for o in nearest_views(own, others, n_views):
         m = photos_agree(own, o, contrast)
         if m is not None:
             out |= m

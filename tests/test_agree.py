@@ -117,3 +117,28 @@ def test_nearest_views_by_place_and_direction():
     got = nearest_views(own, views, n=3)
     assert [v.camera.center[0] for v in got] == [-0.05, 0.1, 0.3]  # nearest first
     assert all(v is not views[4] for v in nearest_views(own, views, n=5))  # turned 60 deg away
+
+
+def test_where_the_depth_is_trusted_a_match_must_lie_at_it():
+    """The other visit 20 cm to the right (the plane shifts 10 px); a textured object moved
+    6 px to the left between the visits, along its pixels' rays' images: as if it stood at
+    5/8 of its depth. Where the rendered depth is not trusted that is a static point nearer
+    than drawn (it agrees); where both times' photos agree on the depth it is not."""
+    tex = _texture(1)
+    obj = _texture(3, 30, 30) * np.float32(1.2)
+    own = _plane_photo(tex, 0.0)
+    other = _plane_photo(tex, 0.2)
+    own[40:70, 60:90] = obj
+    other[40:70, 44:74] = obj  # static it would stand at 50:80
+    core = (slice(48, 62), slice(68, 82))
+    loose = photos_agree(_key(own), _key(other, 0.2, 1))
+    assert loose[core].mean() > 0.8
+    trusted = np.ones((H, W), bool)
+    tight = photos_agree(_key(own), _key(other, 0.2, 1), trusted=trusted)
+    assert tight[core].mean() < 0.1
+    assert tight[90:110, 20:140].mean() > 0.8  # the plane, at its depth, still agrees
+    a, b = _camera(0.0), _camera(0.1)
+    col, row = np.meshgrid(np.arange(W, dtype=np.float64), np.arange(H, dtype=np.float64))
+    at_inf = np.stack([col, row], -1)
+    assert np.allclose(ray_segment_distance(a, b, np.full((H, W), Z), at_inf, 0.95, 1.05),
+                       5.0 / 1.05, atol=1e-6)  # from the far end: 5 / 1.05 px

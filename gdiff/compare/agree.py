@@ -10,7 +10,8 @@ optical flow (OpenCV DIS, both ways); a pixel agrees when
 - the match is consistent both ways (forward then backward flow returns within ``fb_tol``
   pixels): on a changed object the other photo has nothing to match, and the flow fails there;
 - the match lies where a static point on the pixel's ray can appear in the other photo: on
-  the image of the ray from half the rendered depth to infinity, within a tolerance taken
+  the image of the ray from half the rendered depth to infinity (where the photos of both
+  times agree on the depth, only within ``depth_tol`` of it), within a tolerance taken
   from the pair itself (``max(2 px, 3 x`` the median distance of the consistent matches),
   so that a pose error shared by the pair does not count). An object that moved between the
   visits matches off that segment. A pair whose consistent matches lie off it by more than
@@ -46,13 +47,14 @@ def _grey8(photo: np.ndarray) -> np.ndarray:
 
 
 def ray_segment_distance(cam_a, cam_b, depth_a: np.ndarray, matches: np.ndarray,
-                         near: float = 0.5) -> np.ndarray:
+                         near=0.5, far=np.inf) -> np.ndarray:
     """Per pixel of camera ``cam_a`` (:class:`gdiff.cameras.Camera`, camera-to-world, at the
     size of ``depth_a``), the distance in pixels of ``matches`` (float [H, W, 2], x and y pixel
     indices in camera ``cam_b``) from the image in ``cam_b`` of the pixel's ray between
-    ``near`` times its depth ``depth_a`` (float [H, W], camera-frame z; NaN or <= 0: the
-    median valid depth) and infinity. Both cameras must have the same pixel grid convention
-    (centres at +0.5)."""
+    ``near`` and ``far`` times its depth ``depth_a`` (float [H, W], camera-frame z; NaN or
+    <= 0: the median valid depth). ``near`` and ``far``: scalars or float [H, W] (``far``
+    inf: to infinity). Both cameras must have the same pixel grid convention (centres at
+    +0.5)."""
     h, w = depth_a.shape
     T = cam_b.w2c @ cam_a.c2w  # camera a -> camera b
     R, t = T[:3, :3], T[:3, 3]
@@ -62,12 +64,19 @@ def ray_segment_distance(cam_a, cam_b, depth_a: np.ndarray, matches: np.ndarray,
     d = np.asarray(depth_a, np.float64).reshape(-1)
     good = np.isfinite(d) & (d > 0)
     d = np.where(good, d, np.median(d[good]) if good.any() else 1.0)
+    near = np.broadcast_to(np.asarray(near, np.float64), (h, w)).reshape(-1, 1)
+    far = np.broadcast_to(np.asarray(far, np.float64), (h, w)).reshape(-1, 1)
     Kb = cam_b.K
-    far = (rays @ R.T) @ Kb.T  # the vanishing point of each ray (depth -> infinity)
-    close = (near * d[:, None] * (rays @ R.T) + t) @ Kb.T
-    p_far = far[:, :2] / np.where(np.abs(far[:, 2:]) > 1e-12, far[:, 2:], 1e-12)
+    turned = rays @ R.T
+    # the far end: the ray's vanishing point (far = inf), else the point at far x depth
+    at_inf = turned @ Kb.T
+    finite = np.isfinite(far)
+    at_far = (np.where(finite, far, 1.0) * d[:, None] * turned + t) @ Kb.T
+    far_h = np.where(finite, at_far, at_inf)
+    close = (near * d[:, None] * turned + t) @ Kb.T
+    p_far = far_h[:, :2] / np.where(np.abs(far_h[:, 2:]) > 1e-12, far_h[:, 2:], 1e-12)
     p_close = close[:, :2] / np.maximum(close[:, 2:], 1e-9)
-    # where the near end lies behind camera b, its ray's image starts at infinity's end only
+    # where the near end lies behind camera b, its ray's image starts at the far end only
     p_close = np.where(close[:, 2:] > 1e-9, p_close, p_far)
     q = np.asarray(matches, np.float64).reshape(-1, 2) + 0.5
     seg = p_far - p_close
@@ -77,11 +86,17 @@ def ray_segment_distance(cam_a, cam_b, depth_a: np.ndarray, matches: np.ndarray,
 
 
 def photos_agree(own: KeyPhoto, other: KeyPhoto, contrast: float = 3.0, fb_tol: float = 2.0,
-                 max_pose_error: float = 0.01, blur: float = 2.0) -> np.ndarray | None:
+                 max_pose_error: float = 0.01, blur: float = 2.0,
+                 trusted: np.ndarray | None = None, depth_tol: float = 0.05
+                 ) -> np.ndarray | None:
     """Bool [H, W] at ``own``'s depth size: the pixels of ``own.photo`` whose surface
     ``other.photo`` shows alike (module docstring); None when the pair says nothing (too few
     consistent matches, or they lie off the rays' images by more than ``max_pose_error`` of
-    the image width). ``blur``: Gaussian sigma in pixels before the colours are compared."""
+    the image width). ``blur``: Gaussian sigma in pixels before the colours are compared.
+    ``trusted`` (bool [H, W], optional): the pixels whose rendered depth the photos of both
+    times agree on (:func:`gdiff.compare.coverage.observed`); there a static point lies within
+    ``depth_tol`` (relative) of it, and the match must lie on that stretch of the ray; elsewhere
+    anywhere from half the depth to infinity."""
     h, w = np.shape(own.depth)
     a = np.asarray(own.photo, np.float32)
     b = np.asarray(other.photo, np.float32)
@@ -98,8 +113,12 @@ def photos_agree(own: KeyPhoto, other: KeyPhoto, contrast: float = 3.0, fb_tol: 
     consistent = inside & (np.linalg.norm(fwd + back, axis=-1) < fb_tol)
     if consistent.sum() < _MIN_MATCHES:
         return None
+    near, far = 0.5, np.inf
+    if trusted is not None and np.shape(trusted) == (h, w):
+        near = np.where(trusted, 1.0 - depth_tol, near)
+        far = np.where(trusted, 1.0 + depth_tol, far)
     off = ray_segment_distance(own.depth_camera(), other.depth_camera(), np.asarray(own.depth),
-                               np.stack([mx, my], -1))
+                               np.stack([mx, my], -1), near, far)
     typical = float(np.median(off[consistent]))
     if typical > max_pose_error * w:
         return None
@@ -136,13 +155,15 @@ def nearest_views(own: KeyPhoto, others: list[KeyPhoto], n: int = 3,
 
 
 def agreeing(own: KeyPhoto, others: list[KeyPhoto], contrast: float = 3.0,
-             n_views: int = 3) -> np.ndarray:
+             n_views: int = 3, trusted: np.ndarray | None = None,
+             depth_tol: float = 0.05) -> np.ndarray:
     """Bool [H, W] at ``own``'s depth size: the pixels of ``own``'s photo that at least one
     photo of ``others`` (the other visit's key photos; the ``n_views`` nearest,
-    :func:`nearest_views`) shows alike (:func:`photos_agree`)."""
+    :func:`nearest_views`) shows alike (:func:`photos_agree`, with ``trusted`` and
+    ``depth_tol``)."""
     out = np.zeros(np.shape(own.depth), bool)
     for o in nearest_views(own, others, n_views):
-        m = photos_agree(own, o, contrast)
+        m = photos_agree(own, o, contrast, trusted=trusted, depth_tol=depth_tol)
         if m is not None:
             out |= m
     return out

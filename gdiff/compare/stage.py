@@ -301,7 +301,8 @@ def compare_paths(ids: dict[Key, np.ndarray], frames: dict[Key, dict] | None,
                      "where the training photo differs from the other time's render next to "
                      "them (compare.complete_reach = %g)", pieces, added, n, o.complete_reach)
     if o.photo_agree > 0 and key_photos:  # last: it judges the key masks as they stand
-        _leave_out_agreeing(masks, key_photos, o.photo_agree, workers)
+        _leave_out_agreeing(masks, key_photos, o.photo_agree, known, o.observed_depth_tol,
+                            workers)
     log.info("compared %d poses: %d of %d IDs changed (%s)", len(poses), len(changed), len(df),
              ", ".join(f"{t}: {(df['type'] == t).sum()}" for t in ("added", "removed", "moved")))
     df.attrs["evidence3d"] = evidence
@@ -314,23 +315,29 @@ class _Agreeing:
     """:func:`gdiff.compare.agree.agreeing` for one key photo against the other visit's (so
     that the key photos can be judged in parallel)."""
 
-    def __init__(self, key_photos: list[KeyPhoto], contrast: float):
+    def __init__(self, key_photos: list[KeyPhoto], contrast: float, trusted: dict,
+                 depth_tol: float):
         self.key_photos, self.contrast = key_photos, contrast
+        self.trusted, self.depth_tol = trusted, depth_tol
 
     def __call__(self, own: KeyPhoto) -> np.ndarray:
-        return agreeing(own, [k for k in self.key_photos if k.time != own.time], self.contrast)
+        return agreeing(own, [k for k in self.key_photos if k.time != own.time], self.contrast,
+                        trusted=self.trusted.get(own.pose), depth_tol=self.depth_tol)
 
 
 def _leave_out_agreeing(masks, key_photos: list[KeyPhoto], contrast: float,
+                        trusted: dict | None = None, depth_tol: float = 0.05,
                         workers: int = 1) -> None:
     """At each key pose (in place in ``masks``, ``{(path, i): (mask_t0, mask_t1)}``), the
     mask of the photo's own time loses the pixels whose surface a photo of the other visit
     shows alike (:mod:`gdiff.compare.agree`): what the photo shows there did not change. The
     other time's mask is left: it marks what that time's model draws at this pose, which the
-    photo may not show."""
+    photo may not show. ``trusted[(path, i)]`` (bool [H, W], optional): where the depth of
+    both times is observed at that key pose; there a match must lie within ``depth_tol``
+    (relative) of the rendered depth."""
     n, removed = 0, 0
-    for kp, agree in zip(key_photos, ordered_map(_Agreeing(key_photos, contrast), key_photos,
-                                                 workers)):
+    agree_one = _Agreeing(key_photos, contrast, trusted or {}, depth_tol)
+    for kp, agree in zip(key_photos, ordered_map(agree_one, key_photos, workers)):
         ms = list(masks.get(kp.pose, ()))
         if len(ms) != 2 or ms[kp.time].shape != agree.shape:
             continue

@@ -217,6 +217,29 @@ def read_scene_sheet(path: str | Path) -> dict[str, SceneSpec]:
     return scenes
 
 
+def check_overrides(scenes: dict[str, SceneSpec], schema: dict) -> None:
+    """Raise :class:`ConfigError` when a scene's sheet overrides a key the configuration does
+    not have: ``schema`` is the workflow's config schema (``workflow/schemas/config.schema.yaml``
+    as a dict); a sheet column ``<section>.<key>`` must name a section with keys there and one
+    of its keys. An unknown column would otherwise be read and never used."""
+    known = schema.get("properties", {})
+    sections = sorted(k for k, v in known.items() if isinstance(v, dict) and "properties" in v)
+    for name, spec in scenes.items():
+        for section, values in spec.overrides.items():
+            where = f"scenes sheet, scene {name!r}, column '{section}.{next(iter(values))}'"
+            if section not in sections:
+                raise ConfigError(f"{where}: '{section}' is not a configuration section a sheet "
+                                  f"can override (sections: {', '.join(sections)}; see "
+                                  "config/config.yaml). A synthetic scene's size and views are "
+                                  "its preset's (synth:<preset>[:<seed>])")
+            keys = known[section]["properties"]
+            for key in values:
+                if key not in keys:
+                    raise ConfigError(f"scenes sheet, scene {name!r}, column '{section}.{key}': "
+                                      f"'{section}' has no key '{key}' (its keys: "
+                                      f"{', '.join(sorted(keys))})")
+
+
 def _size_and_sha1(path: Path) -> tuple[int, int, str]:
     """(width, height, sha1) of an image, read once and decoded fully so corrupt files are
     caught here; the size is that of the upright image (EXIF orientation applied, as every

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from gdiff.errors import ConfigError, SceneError
-from gdiff.scene import discover_scenes, validate_scene, write_manifest
+from gdiff.scene import check_overrides, discover_scenes, validate_scene, write_manifest
 
 
 def _img(path: Path, w=48, h=32, seed=0):
@@ -142,6 +142,27 @@ def test_discover_sheet_with_overrides(tmp_path):
     assert s["desk1"].overrides == {"fit": {"max_side": 160}}
     assert s["desk2"].overrides == {"poses": {"source": "known"}}
     assert s["desk1"].path == tmp_path / "data" / "desk"
+
+
+def test_sheet_overrides_must_name_configuration_keys(tmp_path):
+    """A column the configuration does not have would be read and never used: an error naming
+    the scene and the column (here a synthetic scene's view count, which is its preset's)."""
+    import yaml
+
+    schema = yaml.safe_load((Path(__file__).parents[1] / "workflow" / "schemas" /
+                             "config.schema.yaml").read_text())
+    make_scene(tmp_path / "data" / "desk")
+    sheet = tmp_path / "scenes.tsv"
+    sheet.write_text("name\tpath\tfit.max_side\tcompare.photo_agree\n"
+                     "desk\tdata/desk\t160\t0\n")
+    check_overrides(discover_scenes(sheet), schema)  # both known
+    sheet.write_text("name\tpath\tsynth.n_before\n" "d6\tsynth:demo:0\t6\n")
+    with pytest.raises(ConfigError, match=r"scene 'd6', column 'synth.n_before': 'synth' is not "
+                                          r"a configuration section.*fit"):
+        check_overrides(discover_scenes(sheet), schema)
+    sheet.write_text("name\tpath\tfit.max_sid\n" "desk\tdata/desk\t160\n")
+    with pytest.raises(ConfigError, match=r"'fit' has no key 'max_sid' \(its keys: .*max_side"):
+        check_overrides(discover_scenes(sheet), schema)
 
 
 @pytest.mark.parametrize("content, match", [

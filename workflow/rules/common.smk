@@ -3,10 +3,12 @@ import json
 import re
 from pathlib import Path
 
+import yaml
+
 from snakemake.utils import validate
 
 from gdiff.errors import GdiffError
-from gdiff.scene import discover_scenes
+from gdiff.scene import check_overrides, discover_scenes
 
 
 def _check_config_keys(cfg, schema_path):
@@ -37,6 +39,8 @@ validate(config, _SCHEMA)
 
 try:
     SCENES = discover_scenes(config["scenes"], synth_root="resources/synth")
+    with open(_SCHEMA) as _f:
+        check_overrides(SCENES, yaml.safe_load(_f))
 except GdiffError as e:
     raise ValueError(str(e)) from None
 

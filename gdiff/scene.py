@@ -231,7 +231,9 @@ def check_overrides(scenes: dict[str, SceneSpec], schema: dict) -> None:
                 raise ConfigError(f"{where}: '{section}' is not a configuration section a sheet "
                                   f"can override (sections: {', '.join(sections)}; see "
                                   "config/config.yaml). A synthetic scene's size and views are "
-                                  "its preset's (synth:<preset>[:<seed>])")
+                                  "its preset's (synth:<preset>[:<seed>]); for others make its "
+                                  "folder with `gdiff synth --preset P --seed S --n-before N "
+                                  "--n-after N DIR` and give DIR as the path")
             keys = known[section]["properties"]
             for key in values:
                 if key not in keys:

@@ -238,29 +238,39 @@ def reproject_ids(ids_src: np.ndarray, src: TrackFrame, dst: TrackFrame,
 _DIS = None
 
 
-def _flow(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """Dense optical flow [H, W, 2] (pixels) with a(x) ~ b(x + flow); a, b float RGB [H, W, 3]."""
+def _grey(rgb: np.ndarray) -> np.ndarray:
+    """uint8 [H, W] luma of a float RGB image [H, W, 3] in [0, 1]."""
+    return cv2.cvtColor((np.clip(rgb, 0, 1) * 255).astype(np.uint8), cv2.COLOR_RGB2GRAY)
+
+
+def flow_matches(grey_a: np.ndarray, grey_b: np.ndarray
+                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Dense optical flow (OpenCV DIS) from ``grey_a`` to ``grey_b`` (uint8 [H, W] each, the
+    same size), checked back: ``(mx, my, err)``, float32 [H, W] each, where pixel (x, y) of
+    ``a`` matches pixel (mx, my) of ``b`` (pixel indices, a(x) ~ b(x + flow)) and ``err`` is
+    how far the flow back from there misses it, in pixels (huge where the match leaves
+    ``b``): an occluded or changed pixel has no match to return to."""
     global _DIS
     if _DIS is None:
         _DIS = cv2.DISOpticalFlow_create(cv2.DISOPTICAL_FLOW_PRESET_MEDIUM)
-    ga = cv2.cvtColor((np.clip(a, 0, 1) * 255).astype(np.uint8), cv2.COLOR_RGB2GRAY)
-    gb = cv2.cvtColor((np.clip(b, 0, 1) * 255).astype(np.uint8), cv2.COLOR_RGB2GRAY)
-    return _DIS.calc(ga, gb, None)
+    fwd = _DIS.calc(grey_a, grey_b, None)
+    bwd = _DIS.calc(grey_b, grey_a, None)
+    H, W = grey_a.shape
+    jj, ii = np.mgrid[0:H, 0:W].astype(np.float32)
+    mx, my = ii + fwd[..., 0], jj + fwd[..., 1]
+    back = cv2.remap(bwd, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT,
+                     borderValue=(1e6, 1e6))
+    err = np.hypot(fwd[..., 0] + back[..., 0], fwd[..., 1] + back[..., 1])
+    return mx, my, err
 
 
 def flow_ids(ids_src: np.ndarray, src: TrackFrame, dst: TrackFrame, fb_tol: float) -> np.ndarray:
-    """Carry ``ids_src`` onto ``dst`` with optical flow dst -> src and a forward-backward check.
+    """Carry ``ids_src`` onto ``dst`` with optical flow dst -> src and a forward-backward check
+    (:func:`flow_matches`).
 
     Returns int32 [H, W], 0 where the flow is inconsistent (occlusion) or leaves the image.
     """
-    H, W = ids_src.shape
-    f_ds = _flow(dst.rgb, src.rgb)
-    f_sd = _flow(src.rgb, dst.rgb)
-    jj, ii = np.mgrid[0:H, 0:W].astype(np.float32)
-    mx, my = ii + f_ds[..., 0], jj + f_ds[..., 1]
-    back = cv2.remap(f_sd, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT,
-                     borderValue=(1e6, 1e6))
-    err = np.hypot(f_ds[..., 0] + back[..., 0], f_ds[..., 1] + back[..., 1])
+    mx, my, err = flow_matches(_grey(dst.rgb), _grey(src.rgb))
     out = cv2.remap(ids_src.astype(np.float32), mx, my, cv2.INTER_NEAREST,
                     borderMode=cv2.BORDER_CONSTANT, borderValue=0).astype(np.int32)
     out[err > fb_tol] = 0

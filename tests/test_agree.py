@@ -4,7 +4,7 @@ import cv2
 import numpy as np
 
 from gdiff.cameras import Camera
-from gdiff.compare.agree import agreeing, nearest_views, photos_agree, ray_segment_distance
+from gdiff.compare.agree import agreeing, nearest_photos, photos_agree, ray_segment_distance
 from gdiff.compare.photos import KeyPhoto
 
 W, H, F, Z = 160, 120, 100.0, 2.0
@@ -108,15 +108,15 @@ def test_pairs_too_far_apart_say_nothing():
     assert agreeing(_key(own), [far, near]).mean() > 0.7
 
 
-def test_nearest_views_by_place_and_direction():
+def test_nearest_photos_by_place_and_direction():
     own = _key(_texture(0)[:, :W], 0.0)
     turned = np.eye(4)
     turned[:3, :3] = cv2.Rodrigues(np.array([0.0, np.radians(60), 0.0]))[0]
     views = [_key(own.photo, x, 1) for x in (0.8, 0.1, 0.3, -0.05)]
     views.append(KeyPhoto(1, Camera(W, H, F, F, W / 2, H / 2, turned), own.depth, own.photo))
-    got = nearest_views(own, views, n=3)
+    got = nearest_photos(own, views, n=3)
     assert [v.camera.center[0] for v in got] == [-0.05, 0.1, 0.3]  # nearest first
-    assert all(v is not views[4] for v in nearest_views(own, views, n=5))  # turned 60 deg away
+    assert all(v is not views[4] for v in nearest_photos(own, views, n=5))  # turned 60 deg away
 
 
 def test_where_the_depth_is_trusted_a_match_must_lie_at_it():

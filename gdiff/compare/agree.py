@@ -5,7 +5,8 @@ A sparse capture's model renders poorly from some poses, so a render of the othe
 differ from a photo on a surface nothing happened to (a knob, a wall spot, the edge of a
 shelf), and the ID comparison may keep it by its colour. Two photos of the two visits taken
 from nearby places settle it directly. The other photo is matched to the key photo by dense
-optical flow (OpenCV DIS, both ways); a pixel agrees when
+optical flow both ways (:func:`gdiff.track.flow_matches`, the tracker's); a pixel agrees
+when
 
 - the match is consistent both ways (forward then backward flow returns within ``fb_tol``
   pixels): on a changed object the other photo has nothing to match, and the flow fails there;
@@ -34,6 +35,7 @@ import cv2
 import numpy as np
 
 from ..io import linear_to_srgb
+from ..track import flow_matches
 from .photos import KeyPhoto
 
 # fewest consistent matches a pair must have to say anything
@@ -102,15 +104,9 @@ def photos_agree(own: KeyPhoto, other: KeyPhoto, contrast: float = 3.0, fb_tol: 
     b = np.asarray(other.photo, np.float32)
     if a.shape[:2] != (h, w) or b.shape[:2] != (h, w):
         return None
-    ga, gb = _grey8(a), _grey8(b)
-    dis = cv2.DISOpticalFlow_create(cv2.DISOPTICAL_FLOW_PRESET_MEDIUM)
-    fwd = dis.calc(ga, gb, None)
-    bwd = dis.calc(gb, ga, None)
-    col, row = np.meshgrid(np.arange(w, dtype=np.float32), np.arange(h, dtype=np.float32))
-    mx, my = col + fwd[..., 0], row + fwd[..., 1]
+    mx, my, err = flow_matches(_grey8(a), _grey8(b))
     inside = (mx >= 0) & (mx <= w - 1) & (my >= 0) & (my <= h - 1)
-    back = cv2.remap(bwd, mx, my, cv2.INTER_LINEAR)
-    consistent = inside & (np.linalg.norm(fwd + back, axis=-1) < fb_tol)
+    consistent = inside & (err < fb_tol)
     if consistent.sum() < _MIN_MATCHES:
         return None
     near, far = 0.5, np.inf
@@ -134,7 +130,7 @@ def photos_agree(own: KeyPhoto, other: KeyPhoto, contrast: float = 3.0, fb_tol: 
     return matched & (diff <= contrast * max(floor, 1e-4))
 
 
-def nearest_views(own: KeyPhoto, others: list[KeyPhoto], n: int = 3,
+def nearest_photos(own: KeyPhoto, others: list[KeyPhoto], n: int = 3,
                   max_angle: float = 45.0) -> list[KeyPhoto]:
     """The ``n`` photos of ``others`` taken nearest to ``own``'s: ranked by the distance between
     the camera centres over the median depth ``own`` renders (its scene scale) plus the angle
@@ -159,10 +155,10 @@ def agreeing(own: KeyPhoto, others: list[KeyPhoto], contrast: float = 3.0,
              depth_tol: float = 0.05) -> np.ndarray:
     """Bool [H, W] at ``own``'s depth size: the pixels of ``own``'s photo that at least one
     photo of ``others`` (the other visit's key photos; the ``n_views`` nearest,
-    :func:`nearest_views`) shows alike (:func:`photos_agree`, with ``trusted`` and
+    :func:`nearest_photos`) shows alike (:func:`photos_agree`, with ``trusted`` and
     ``depth_tol``)."""
     out = np.zeros(np.shape(own.depth), bool)
-    for o in nearest_views(own, others, n_views):
+    for o in nearest_photos(own, others, n_views):
         m = photos_agree(own, o, contrast, trusted=trusted, depth_tol=depth_tol)
         if m is not None:
             out |= m

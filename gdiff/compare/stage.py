@@ -178,7 +178,8 @@ def compare_paths(ids: dict[Key, np.ndarray], frames: dict[Key, dict] | None,
     the photo differs from the other time's render next to a change (``complete_reach``,
     :mod:`gdiff.compare.complete`), and an object of the ID comparison that neither depth nor
     colour confirms is kept when the photos of both times show it changed (``confirm_photo``,
-    :func:`_photo_support`).
+    :func:`_photo_support`); last, a key frame's mask of its own time loses what a photo of
+    the other visit shows alike (``photo_agree``, :mod:`gdiff.compare.agree`).
     ``alpha_min``: a pixel whose rendered opacity (the frames' ``alpha``) is below this shows no
     surface and is not judged (the segmenter's ``alpha_min``: it gave such pixels no ID). Returns
     ({(path, i): (mask_t0, mask_t1)}, changes table: id,
@@ -312,15 +313,17 @@ def compare_paths(ids: dict[Key, np.ndarray], frames: dict[Key, dict] | None,
 
 
 class _Agreeing:
-    """:func:`gdiff.compare.agree.agreeing` for one key photo against the other visit's (so
-    that the key photos can be judged in parallel)."""
+    """:func:`gdiff.compare.agree.agreeing` for one key photo (by its index in
+    ``key_photos``) against the other visit's, so that the key photos can be judged in
+    parallel (forked workers see the photos; only the index and the map are sent)."""
 
     def __init__(self, key_photos: list[KeyPhoto], contrast: float, trusted: dict,
                  depth_tol: float):
         self.key_photos, self.contrast = key_photos, contrast
         self.trusted, self.depth_tol = trusted, depth_tol
 
-    def __call__(self, own: KeyPhoto) -> np.ndarray:
+    def __call__(self, index: int) -> np.ndarray:
+        own = self.key_photos[index]
         return agreeing(own, [k for k in self.key_photos if k.time != own.time], self.contrast,
                         trusted=self.trusted.get(own.pose), depth_tol=self.depth_tol)
 
@@ -337,7 +340,7 @@ def _leave_out_agreeing(masks, key_photos: list[KeyPhoto], contrast: float,
     (relative) of the rendered depth."""
     n, removed = 0, 0
     agree_one = _Agreeing(key_photos, contrast, trusted or {}, depth_tol)
-    for kp, agree in zip(key_photos, ordered_map(agree_one, key_photos, workers)):
+    for kp, agree in zip(key_photos, ordered_map(agree_one, range(len(key_photos)), workers)):
         ms = list(masks.get(kp.pose, ()))
         if len(ms) != 2 or ms[kp.time].shape != agree.shape:
             continue
@@ -784,8 +787,9 @@ def compare(instances_dir, poses_json, out_dir, options: CompareOptions | None =
     processes the poses are judged on (the files do not depend on it). ``photo_root``: the
     folder the key frames' ``image`` names are relative to (:func:`gdiff.cameras.image_root`);
     with it the training photos, brought to one exposure for both visits
-    (:func:`_key_photos_at_one_exposure`), check the flat evidence, confirm objects and
-    complete the key frames' masks (``compare_paths``' ``photos``).
+    (:func:`_key_photos_at_one_exposure`), check the flat evidence, confirm objects, complete
+    the key frames' masks and clear in them what both visits' photos show alike
+    (``compare_paths``' ``photos``).
     Pixels whose rendered opacity is below the segmenter's ``alpha_min`` (recorded in
     ``index.json``; :data:`gdiff.segment.base.ALPHA_MIN` when an older index lacks it) show no
     surface and are not judged (``compare_paths``' ``alpha_min``).

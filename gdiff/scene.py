@@ -48,6 +48,7 @@ import cv2
 import numpy as np
 import yaml
 
+from .config import sections as config_sections
 from .errors import ConfigError, SceneError
 from .io import IMAGE_EXTENSIONS, IMREAD_UPRIGHT, link_or_copy, read_json, write_json
 from .video import InputOptions, extract_frames, find_video, is_video, video_info
@@ -222,8 +223,8 @@ def check_overrides(scenes: dict[str, SceneSpec], schema: dict) -> None:
     not have: ``schema`` is the workflow's config schema (``workflow/schemas/config.schema.yaml``
     as a dict); a sheet column ``<section>.<key>`` must name a section with keys there and one
     of its keys. An unknown column would otherwise be read and never used."""
-    known = schema.get("properties", {})
-    sections = sorted(k for k, v in known.items() if isinstance(v, dict) and "properties" in v)
+    known = config_sections(schema)
+    sections = sorted(known)
     for name, spec in scenes.items():
         for section, values in spec.overrides.items():
             where = f"scenes sheet, scene {name!r}, column '{section}.{next(iter(values))}'"
@@ -234,7 +235,7 @@ def check_overrides(scenes: dict[str, SceneSpec], schema: dict) -> None:
                                   "its preset's (synth:<preset>[:<seed>]); for others make its "
                                   "folder with `gdiff synth --preset P --seed S --n-before N "
                                   "--n-after N DIR` and give DIR as the path")
-            keys = known[section]["properties"]
+            keys = known[section]
             for key in values:
                 if key not in keys:
                     raise ConfigError(f"scenes sheet, scene {name!r}, column '{section}.{key}': "

@@ -42,6 +42,15 @@ def test_bad_config_value_is_rejected():
     assert "device" in r.stdout + r.stderr
 
 
+def test_nested_command_line_config_is_typed():
+    """--config fit='{exposure: true}' (Snakemake hands the workflow the string 'true')."""
+    r = smk("-n", "--config", "fit={exposure: true, max_side: 64}")
+    assert r.returncode == 0, r.stdout + r.stderr
+    r = smk("-n", "--config", "fit={exposure: yes please}")
+    assert r.returncode != 0
+    assert "fit.exposure = 'yes please' is not boolean" in r.stdout + r.stderr
+
+
 def test_missing_scene_folder_is_named(tmp_path):
     r = smk("-n", "--config", f"scenes={tmp_path / 'nope'}")
     assert r.returncode != 0

@@ -7,40 +7,25 @@ import yaml
 
 from snakemake.utils import validate
 
+from gdiff.config import check_keys, command_line_types
 from gdiff.errors import GdiffError
 from gdiff.scene import check_overrides, discover_scenes
 
 
-def _check_config_keys(cfg, schema_path):
-    """Reject unknown keys with a message naming them (before jsonschema's generic one)."""
-    import yaml
-
-    schema = yaml.safe_load(open(schema_path))
-    known = schema["properties"]
-    for key, value in cfg.items():
-        if key not in known:
-            raise ValueError(
-                f"config: unknown key '{key}'. Known keys: {', '.join(sorted(known))}. "
-                "Check the spelling in config/config.yaml or in --config."
-            )
-        sub = known[key].get("properties")
-        if sub is not None and isinstance(value, dict):
-            for k in value:
-                if k not in sub:
-                    raise ValueError(
-                        f"config: unknown key '{key}.{k}'. Known keys in '{key}': "
-                        f"{', '.join(sorted(sub))}."
-                    )
-
-
 _SCHEMA = str(Path(workflow.basedir) / "workflow/schemas/config.schema.yaml")
-_check_config_keys(config, _SCHEMA)
+with open(_SCHEMA) as _f:
+    _SCHEMA_DICT = yaml.safe_load(_f)
+try:
+    check_keys(config, _SCHEMA_DICT)
+    # nested --config values arrive as strings (Snakemake reads them with YAML's base loader)
+    config.update(command_line_types(config, _SCHEMA_DICT))
+except GdiffError as e:
+    raise ValueError(str(e)) from None
 validate(config, _SCHEMA)
 
 try:
     SCENES = discover_scenes(config["scenes"], synth_root="resources/synth")
-    with open(_SCHEMA) as _f:
-        check_overrides(SCENES, yaml.safe_load(_f))
+    check_overrides(SCENES, _SCHEMA_DICT)
 except GdiffError as e:
     raise ValueError(str(e)) from None
 

@@ -45,6 +45,7 @@ from pathlib import Path
 from typing import Any
 
 import cv2
+import jsonschema
 import numpy as np
 import yaml
 
@@ -222,7 +223,8 @@ def check_overrides(scenes: dict[str, SceneSpec], schema: dict) -> None:
     """Raise :class:`ConfigError` when a scene's sheet overrides a key the configuration does
     not have: ``schema`` is the workflow's config schema (``workflow/schemas/config.schema.yaml``
     as a dict); a sheet column ``<section>.<key>`` must name a section with keys there and one
-    of its keys. An unknown column would otherwise be read and never used."""
+    of its keys (an unknown column would otherwise be read and never used), and its cells must
+    be values the schema allows for that key (type, range)."""
     known = config_sections(schema)
     sections = sorted(known)
     for name, spec in scenes.items():
@@ -236,11 +238,16 @@ def check_overrides(scenes: dict[str, SceneSpec], schema: dict) -> None:
                                   "folder with `gdiff synth --preset P --seed S --n-before N "
                                   "--n-after N DIR` and give DIR as the path")
             keys = known[section]
-            for key in values:
+            for key, value in values.items():
+                where = f"scenes sheet, scene {name!r}, column '{section}.{key}'"
                 if key not in keys:
-                    raise ConfigError(f"scenes sheet, scene {name!r}, column '{section}.{key}': "
-                                      f"'{section}' has no key '{key}' (its keys: "
+                    raise ConfigError(f"{where}: '{section}' has no key '{key}' (its keys: "
                                       f"{', '.join(sorted(keys))})")
+                try:
+                    jsonschema.validate(value, keys[key])
+                except jsonschema.ValidationError as e:
+                    raise ConfigError(f"{where}: {e.message}; write it as in "
+                                      "config/config.yaml") from None
 
 
 def _size_and_sha1(path: Path) -> tuple[int, int, str]:

@@ -163,6 +163,15 @@ def test_sheet_overrides_must_name_configuration_keys(tmp_path):
     sheet.write_text("name\tpath\tfit.max_sid\n" "desk\tdata/desk\t160\n")
     with pytest.raises(ConfigError, match=r"'fit' has no key 'max_sid' \(its keys: .*max_side"):
         check_overrides(discover_scenes(sheet), schema)
+    sheet.write_text("name\tpath\tfit.exposure\tcompare.photo_agree\n"
+                     "desk\tdata/desk\tyes please\t0\n")
+    with pytest.raises(ConfigError, match=r"column 'fit.exposure': 'yes please' is not of type "
+                                          r"'boolean'"):
+        check_overrides(discover_scenes(sheet), schema)
+    sheet.write_text("name\tpath\tcompare.photo_agree\n" "desk\tdata/desk\t-1\n")
+    with pytest.raises(ConfigError, match=r"column 'compare.photo_agree': -1 is less than the "
+                                          r"minimum of 0"):
+        check_overrides(discover_scenes(sheet), schema)
 
 
 @pytest.mark.parametrize("content, match", [

@@ -101,14 +101,23 @@ def region_similarity(t0: Texture, t1: Texture, mask: np.ndarray, min_texture: f
     RMS raw gradient of the weaker view is below ``min_texture`` log units per pixel
     (untextured: nothing to compare).
     """
-    region = interior(mask, BORDER)
+    # the region's box with room for the erosion (the same pixels as on the whole image)
+    rows, cols = np.flatnonzero(mask.any(1)), np.flatnonzero(mask.any(0))
+    if not len(rows):
+        return float("nan")
+    h, w = mask.shape
+    m = BORDER + 1
+    sl = (slice(max(0, rows[0] - m), min(h, rows[-1] + 1 + m)),
+          slice(max(0, cols[0] - m), min(w, cols[-1] + 1 + m)))
+    region = interior(mask[sl], BORDER)
     n = int(region.sum())
     if n == 0:
         return float("nan")
-    if np.sqrt(min(t0.energy[region].mean(), t1.energy[region].mean())) < min_texture:
+    e0, e1 = t0.energy[sl], t1.energy[sl]
+    if np.sqrt(min(e0[region].mean(), e1[region].mean())) < min_texture:
         return float("nan")
-    a = t0.grad[region].reshape(-1)
-    b = t1.grad[region].reshape(-1)
+    a = t0.grad[sl][region].reshape(-1)
+    b = t1.grad[sl][region].reshape(-1)
     ea, eb = float(a @ a), float(b @ b)
     if ea <= 0 or eb <= 0:
         return float("nan")

@@ -2182,3 +2182,19 @@ def test_photo_confirms_an_object_that_neither_depth_nor_colour_can():
     assert np.isnan(df.loc[0, "photo"]) and np.isnan(df.loc[0, "photo_other"])
     cmp_stage._photo_support(df, ids, keys, diffs, 2.0, 24, None)
     assert df.loc[0, ["photo", "photo_other"]].min() > 0.9
+
+
+def test_every_ids_chroma_histogram_at_once_is_each_ids_own():
+    """The per-pose histograms of all IDs (one pass) equal the per-ID ones."""
+    from gdiff.compare.change import _chroma_hist, _id_chroma_hists, _normalised_chroma
+
+    rng = np.random.default_rng(3)
+    rgb = rng.random((40, 50, 3)).astype(np.float32)
+    rgb[:10] *= 0.05  # dark rows: below the confidence cut
+    ids = rng.integers(0, 7, (40, 50)).astype(np.uint16)
+    pair = _normalised_chroma(rgb)
+    every = _id_chroma_hists(ids, pair)
+    assert every.shape == (7, 8, 8)
+    for i in range(1, 7):
+        np.testing.assert_array_equal(every[i], _chroma_hist(pair, ids == i))
+    assert every[0].sum() == 0  # ID 0 (no instance) is not counted

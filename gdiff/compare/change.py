@@ -304,12 +304,20 @@ def coherent(mask: np.ndarray, width_frac: float) -> np.ndarray:
                             np.ones((k, k), np.uint8)) > 0
 
 
-def _normalised_chroma(rgb: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Grey-world-normalised chromaticity [H, W, 3] (sums to 1) and its confidence [H, W]."""
-    lin = srgb_to_linear(rgb).astype(np.float64)
+def _normalised_chroma(rgb: np.ndarray, linear: np.ndarray | None = None
+                       ) -> tuple[np.ndarray, np.ndarray]:
+    """Grey-world-normalised chromaticity [H, W, 3] (sums to 1) and its confidence [H, W] of
+    ``rgb`` (sRGB [H, W, 3]); ``linear`` (optional): its linear values as float64, when the
+    caller has them (:func:`_linear`)."""
+    lin = _linear(rgb) if linear is None else linear
     lin = lin / np.maximum(lin.reshape(-1, 3).mean(0), 1e-6)  # global colour cast removed
     s = lin.sum(-1)
     return lin / np.maximum(s, 1e-6)[..., None], np.clip(s / 0.15, 0, 1)
+
+
+def _linear(rgb: np.ndarray) -> np.ndarray:
+    """Linear values (float64 [..., 3]) of sRGB ``rgb``."""
+    return srgb_to_linear(rgb).astype(np.float64)
 
 
 def _local_ncc(a: np.ndarray, b: np.ndarray, k: int = 7) -> tuple[np.ndarray, np.ndarray]:
@@ -355,7 +363,11 @@ def _chroma_hist(rgb: np.ndarray | tuple, mask: np.ndarray, bins: int = 8) -> np
     """2-D histogram [bins, bins] of the grey-world chromaticity (r, g) of ``mask`` bool [H, W]
     in ``rgb`` (sRGB [H, W, 3], or its :func:`_normalised_chroma` pair, to reuse it)."""
     c, w = rgb if isinstance(rgb, tuple) else _normalised_chroma(rgb)
-    sel = mask & (w > 0.3)
+    sl = _bbox(mask)
+    if sl is None:
+        return np.zeros((bins, bins))
+    c, w = c[sl], w[sl]
+    sel = mask[sl] & (w > 0.3)
     if not sel.any():
         return np.zeros((bins, bins))
     # bins of equal width over [0, 1) (the same bins as np.histogram2d with that range)
@@ -364,9 +376,36 @@ def _chroma_hist(rgb: np.ndarray | tuple, mask: np.ndarray, bins: int = 8) -> np
     return np.bincount(r * bins + g, minlength=bins * bins).reshape(bins, bins).astype(np.float64)
 
 
+def _bbox(mask: np.ndarray, margin: int = 0) -> tuple[slice, slice] | None:
+    """The slices of the bounding box of ``mask`` (bool [H, W]) grown by ``margin`` pixels
+    (clipped to the image), or None when it is empty: work on a region's pixels touches only
+    its box."""
+    rows, cols = np.flatnonzero(mask.any(1)), np.flatnonzero(mask.any(0))
+    if not len(rows):
+        return None
+    h, w = mask.shape
+    return (slice(max(0, rows[0] - margin), min(h, rows[-1] + 1 + margin)),
+            slice(max(0, cols[0] - margin), min(w, cols[-1] + 1 + margin)))
+
+
+def _id_chroma_hists(ids: np.ndarray, chroma: tuple[np.ndarray, np.ndarray], bins: int = 8
+                     ) -> np.ndarray:
+    """:func:`_chroma_hist` of every ID of ``ids`` (int [H, W]) at once: float64
+    [max ID + 1, bins, bins], row ``i`` the histogram of ``ids == i`` (the same bins and
+    pixels; ``chroma``: the image's :func:`_normalised_chroma` pair)."""
+    c, w = chroma
+    sel = (w > 0.3) & (ids > 0)
+    r = np.floor(np.clip(c[sel, 0], 0, 0.999) * bins).astype(np.int64)
+    g = np.floor(np.clip(c[sel, 1], 0, 0.999) * bins).astype(np.int64)
+    n = int(ids.max()) + 1 if ids.size else 1
+    key = ids[sel].astype(np.int64) * (bins * bins) + r * bins + g
+    return np.bincount(key, minlength=n * bins * bins).reshape(n, bins, bins).astype(np.float64)
+
+
 def surround_colour_change(rgb0: np.ndarray, rgb1: np.ndarray, region: np.ndarray,
                            exclude: np.ndarray, width: int, min_px: int = 1,
-                           reach: int = 1) -> float:
+                           reach: int = 1,
+                           linear: tuple[np.ndarray, np.ndarray] | None = None) -> float:
     """How much the colour of ``region`` (bool [H, W]) changed between the two times once each
     time's local light is divided out: the L1 distance (0: the same, at most 2) between the
     chromaticities (r, g, b summing to 1) of the ratio, per channel in linear light, of the
@@ -381,7 +420,9 @@ def surround_colour_change(rgb0: np.ndarray, rgb1: np.ndarray, region: np.ndarra
     With ``reach`` > 1, a ring left with fewer than ``min_px`` pixels (``exclude`` covers the
     region's neighbourhood) is widened, doubling its width, up to ``reach`` x ``width``: the
     nearest surface that is not excluded stands for the light. NaN when the region or the
-    widest ring has fewer than ``min_px`` pixels, or the ring is black."""
+    widest ring has fewer than ``min_px`` pixels, or the ring is black. ``linear``
+    (optional): the two images' linear values as float64 (:func:`_linear`), when the caller
+    has them."""
     ys, xs = np.nonzero(region)
     if len(ys) < max(min_px, 1):
         return float("nan")
@@ -403,8 +444,8 @@ def surround_colour_change(rgb0: np.ndarray, rgb1: np.ndarray, region: np.ndarra
                                          cv2.DIST_MASK_PRECISE)
         ring = free & (dist <= k)
     chroma = []
-    for rgb in (rgb0, rgb1):
-        lin = srgb_to_linear(rgb[sl]).astype(np.float64)
+    for k, rgb in enumerate((rgb0, rgb1)):
+        lin = _linear(rgb[sl]) if linear is None else linear[k][sl]
         light = lin[ring].mean(0)
         if light.sum() < 1e-3:
             return float("nan")  # the surroundings are black at this time
@@ -530,10 +571,21 @@ def pose_stats(ids0: np.ndarray, ids1: np.ndarray, o: CompareOptions,
             cache[f"P{time}"] = world_points(z, camera)
         return cache[f"P{time}"]
 
+    def linear(time: int):
+        if f"lin{time}" not in cache:
+            cache[f"lin{time}"] = _linear(rgb0 if time == 0 else rgb1)
+        return cache[f"lin{time}"]
+
     def chroma(time: int):
         if f"c{time}" not in cache:
-            cache[f"c{time}"] = _normalised_chroma(rgb0 if time == 0 else rgb1)
+            cache[f"c{time}"] = _normalised_chroma(rgb0 if time == 0 else rgb1, linear(time))
         return cache[f"c{time}"]
+
+    def id_hists(time: int):
+        """Every ID's chromaticity histogram at ``time`` (:func:`_id_chroma_hists`)."""
+        if f"h{time}" not in cache:
+            cache[f"h{time}"] = _id_chroma_hists(ids0 if time == 0 else ids1, chroma(time))
+        return cache[f"h{time}"]
 
     present = (np.unique(ids0), np.unique(ids1))  # the IDs shown at each time
 
@@ -680,18 +732,18 @@ def pose_stats(ids0: np.ndarray, ids1: np.ndarray, o: CompareOptions,
                 # ring stays next to the region (a moved shadow cuts a surface into pieces
                 # too, and only the light right next to a piece is its light)
                 surround = surround_colour_change(rgb0, rgb1, region, m0 | m1 | only(
-                    0 if a0 else 1), width, o.min_area, reach=SURROUND_REACH)
+                    0 if a0 else 1), width, o.min_area, reach=SURROUND_REACH,
+                    linear=(linear(0), linear(1)))
             if np.isnan(surround):
                 surround = surround_colour_change(rgb0, rgb1, region, m0 | m1, width,
-                                                  o.min_area)
+                                                  o.min_area, linear=(linear(0), linear(1)))
         rec = dict(area0=a0, area1=a1, candidate=bool(cand), evidence=evidence,
                    similarity=sim, confirmed=confirmed, observed=seen, surround=surround,
                    hidden_by=hidden_by, hidden=hidden)
         time = 0 if a0 else 1
         rgb, m, z = (rgb0, c0, depth0) if a0 else (rgb1, c1, depth1)
         if rgb is not None:
-            c, w = chroma(time)
-            rec["hist"] = _chroma_hist((c[sl], w[sl]), m)
+            rec["hist"] = id_hists(time)[int(t)].copy()
         else:
             rec["hist"] = None
         size = np.sqrt(m.sum())

@@ -77,3 +77,63 @@ def test_factory_errors():
         SegmentOptions(backend="nope")
     with pytest.raises(ConfigError, match="sam_encoder"):
         make_segmenter(SegmentOptions(backend="sam"))
+
+
+def _grow_into_whole_image(labels, todo, feat, max_iter=50):
+    """grow_into as first written, on whole-image masks (the reference)."""
+    from gdiff.segment.geometric import _shifted
+
+    labels = labels.copy()
+    n = int(labels.max())
+    C = feat.shape[-1]
+    flat = labels.ravel()
+    means = np.zeros((n + 1, C), np.float64)
+    counts = np.bincount(flat, minlength=n + 1).astype(np.float64)
+    for c in range(C):
+        means[:, c] = np.bincount(flat, weights=feat[..., c].ravel(), minlength=n + 1)
+    means /= np.maximum(counts, 1)[:, None]
+    todo = todo & (labels == 0)
+    for _ in range(max_iter):
+        if not todo.any():
+            break
+        best = np.full(labels.shape, np.inf, np.float32)
+        new = np.zeros_like(labels)
+        for dy in (-1, 0, 1):
+            for dx in (-1, 0, 1):
+                if dy == 0 and dx == 0:
+                    continue
+                nb = _shifted(labels, dy, dx)
+                cand = todo & (nb > 0)
+                if not cand.any():
+                    continue
+                d = np.abs(feat[cand] - means[nb[cand]]).sum(-1).astype(np.float32)
+                better = d < best[cand]
+                idx = np.flatnonzero(cand.ravel())[better]
+                best.ravel()[idx] = d[better]
+                new.ravel()[idx] = nb[cand][better]
+        grown = new > 0
+        if not grown.any():
+            break
+        labels[grown] = new[grown]
+        todo &= ~grown
+    return labels
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_grow_into_touches_only_the_pixels_to_do_and_grows_as_on_the_whole_image(seed):
+    from gdiff.segment.geometric import grow_into
+
+    rng = np.random.default_rng(seed)
+    H, W = 37, 53
+    labels = np.zeros((H, W), np.int32)
+    for k in range(1, 6):  # a few seed blobs, one touching the border
+        y, x = rng.integers(0, H), rng.integers(0, W)
+        labels[max(0, y - 2):y + 3, max(0, x - 3):x + 4] = k
+    labels[0, :4] = 6
+    feat = rng.random((H, W, 2)).astype(np.float32)
+    todo = rng.random((H, W)) < 0.9
+    for max_iter in (3, 50):
+        out = grow_into(labels, todo, feat, max_iter)
+        np.testing.assert_array_equal(out, _grow_into_whole_image(labels, todo, feat, max_iter))
+    assert (out[todo & (labels == 0)] > 0).mean() > 0.5  # it grew
+    np.testing.assert_array_equal(out[~todo], labels[~todo])  # nothing else moved

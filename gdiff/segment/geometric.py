@@ -199,43 +199,50 @@ def grow_into(labels: np.ndarray, todo: np.ndarray, feat: np.ndarray, max_iter: 
     feature, growing one pixel ring per iteration.
 
     ``labels``: int32 [H, W], 0 = unlabelled. ``feat``: float32 [H, W, C] (e.g. log depth).
+    Per iteration every pixel still to do looks at its 8 neighbours (the image's border
+    replicated) in the labels the iteration started with and takes the label of the closest
+    mean feature (L1; the first of equals in row-major neighbour order). Only the pixels still
+    to do are touched, not the whole image.
     """
     labels = labels.copy()
     n = int(labels.max())
     if n == 0:
         return labels
+    H, W = labels.shape
     C = feat.shape[-1]
-    flat = labels.ravel()
+    flat = labels.ravel()  # a view: the labels as they grow
     means = np.zeros((n + 1, C), np.float64)
     counts = np.bincount(flat, minlength=n + 1).astype(np.float64)
     for c in range(C):
         means[:, c] = np.bincount(flat, weights=feat[..., c].ravel(), minlength=n + 1)
     means /= np.maximum(counts, 1)[:, None]
-    todo = todo & (labels == 0)
+    F = feat.reshape(-1, C)
+    T = np.flatnonzero(todo & (labels == 0))  # the pixels to do, in row-major order
+    ty, tx = np.divmod(T, W)
+    nbs = [np.clip(ty + dy, 0, H - 1) * W + np.clip(tx + dx, 0, W - 1)
+           for dy in (-1, 0, 1) for dx in (-1, 0, 1) if dy or dx]
     for _ in range(max_iter):
-        if not todo.any():
+        if not T.size:
             break
-        best = np.full(labels.shape, np.inf, np.float32)
-        new = np.zeros_like(labels)
-        for dy in (-1, 0, 1):
-            for dx in (-1, 0, 1):
-                if dy == 0 and dx == 0:
-                    continue
-                nb = _shifted(labels, dy, dx)
-                cand = todo & (nb > 0)
-                if not cand.any():
-                    continue
-                d = np.abs(feat[cand] - means[nb[cand]]).sum(-1).astype(np.float32)
-                cur = best[cand]
-                better = d < cur
-                idx = np.flatnonzero(cand.ravel())[better]
-                best.ravel()[idx] = d[better]
-                new.ravel()[idx] = nb[cand][better]
+        best = np.full(T.size, np.inf, np.float32)
+        new = np.zeros(T.size, labels.dtype)
+        for nb_idx in nbs:
+            nb = flat[nb_idx]
+            cand = nb > 0
+            if not cand.any():
+                continue
+            d = np.abs(F[T[cand]] - means[nb[cand]]).sum(-1).astype(np.float32)
+            better = d < best[cand]
+            idx = np.flatnonzero(cand)[better]
+            best[idx] = d[better]
+            new[idx] = nb[cand][better]
         grown = new > 0
         if not grown.any():
             break
-        labels[grown] = new[grown]
-        todo &= ~grown
+        flat[T[grown]] = new[grown]
+        keep = ~grown
+        T = T[keep]
+        nbs = [a[keep] for a in nbs]
     return labels
 
 

@@ -2198,3 +2198,15 @@ def test_every_ids_chroma_histogram_at_once_is_each_ids_own():
     for i in range(1, 7):
         np.testing.assert_array_equal(every[i], _chroma_hist(pair, ids == i))
     assert every[0].sum() == 0  # ID 0 (no instance) is not counted
+
+
+@pytest.mark.parametrize("width", [1, 2, 5, 13, 32])
+def test_disc_dilation_by_rows_is_opencvs(width):
+    from gdiff.compare.change import _dilate_disc
+
+    rng = np.random.default_rng(width)
+    mask = rng.random((70, 90)) < 0.01
+    mask[0, 0] = mask[-1, 40] = mask[30, -1] = True  # at the borders
+    kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * width + 1, 2 * width + 1))
+    expected = cv2.dilate(mask.astype(np.uint8), kernel) > 0
+    np.testing.assert_array_equal(_dilate_disc(mask, width), expected)

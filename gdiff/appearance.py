@@ -94,6 +94,18 @@ def interior(mask: np.ndarray, width: int) -> np.ndarray:
     return er if er.sum() >= 8 else mask
 
 
+def mask_box(mask: np.ndarray, margin: int = 0) -> tuple[slice, slice] | None:
+    """The slices of the bounding box of ``mask`` (bool [H, W]) grown by ``margin`` pixels
+    (clipped to the image), or None when it is empty: work on a region's pixels touches only
+    its box."""
+    rows, cols = np.flatnonzero(mask.any(1)), np.flatnonzero(mask.any(0))
+    if not len(rows):
+        return None
+    h, w = mask.shape
+    return (slice(max(0, rows[0] - margin), min(h, rows[-1] + 1 + margin)),
+            slice(max(0, cols[0] - margin), min(w, cols[-1] + 1 + margin)))
+
+
 def region_similarity(t0: Texture, t1: Texture, mask: np.ndarray, min_texture: float) -> float:
     """Texture similarity in [-1, 1] of a region (bool [H, W]) between two pixel-aligned views.
 
@@ -102,13 +114,9 @@ def region_similarity(t0: Texture, t1: Texture, mask: np.ndarray, min_texture: f
     (untextured: nothing to compare).
     """
     # the region's box with room for the erosion (the same pixels as on the whole image)
-    rows, cols = np.flatnonzero(mask.any(1)), np.flatnonzero(mask.any(0))
-    if not len(rows):
+    sl = mask_box(mask, BORDER + 1)
+    if sl is None:
         return float("nan")
-    h, w = mask.shape
-    m = BORDER + 1
-    sl = (slice(max(0, rows[0] - m), min(h, rows[-1] + 1 + m)),
-          slice(max(0, cols[0] - m), min(w, cols[-1] + 1 + m)))
     region = interior(mask[sl], BORDER)
     n = int(region.sum())
     if n == 0:

@@ -16,19 +16,13 @@ from __future__ import annotations
 
 from typing import Any
 
+import jsonschema
 import yaml
 
 from .errors import ConfigError
 
-_CHECKS = {
-    "boolean": lambda v: isinstance(v, bool),
-    "integer": lambda v: isinstance(v, int) and not isinstance(v, bool),
-    "number": lambda v: isinstance(v, (int, float)) and not isinstance(v, bool),
-    "null": lambda v: v is None,
-    "array": lambda v: isinstance(v, list),
-    "object": lambda v: isinstance(v, dict),
-    "string": lambda v: isinstance(v, str),
-}
+# JSON Schema's types as the validator Snakemake uses checks them
+_IS_TYPE = jsonschema.Draft202012Validator.TYPE_CHECKER.is_type
 
 
 def sections(schema: dict) -> dict[str, dict]:
@@ -78,7 +72,7 @@ def _typed(value: Any, node: dict, where: str) -> Any:
     types = _types(node)
     if isinstance(value, str) and types and "string" not in types:
         read = _scalar(value)
-        if not any(_CHECKS[t](read) for t in types if t in _CHECKS):
+        if not any(_IS_TYPE(read, t) for t in types):
             raise ConfigError(f"config: {where} = {value!r} is not {' or '.join(types)}; "
                               "write it as in config/config.yaml (e.g. true, 0.5, 3, null)")
         value = read

@@ -226,13 +226,12 @@ def check_overrides(scenes: dict[str, SceneSpec], schema: dict) -> None:
     of its keys (an unknown column would otherwise be read and never used), and its cells must
     be values the schema allows for that key (type, range)."""
     known = config_sections(schema)
-    sections = sorted(known)
     for name, spec in scenes.items():
         for section, values in spec.overrides.items():
             where = f"scenes sheet, scene {name!r}, column '{section}.{next(iter(values))}'"
-            if section not in sections:
+            if section not in known:
                 raise ConfigError(f"{where}: '{section}' is not a configuration section a sheet "
-                                  f"can override (sections: {', '.join(sections)}; see "
+                                  f"can override (sections: {', '.join(sorted(known))}; see "
                                   "config/config.yaml). A synthetic scene's size and views are "
                                   "its preset's (synth:<preset>[:<seed>]); for others make its "
                                   "folder with `gdiff synth --preset P --seed S --n-before N "

@@ -48,7 +48,7 @@ import numpy as np
 import pandas as pd
 from scipy.optimize import linear_sum_assignment
 
-from ..appearance import region_similarity, texture as image_texture
+from ..appearance import mask_box, region_similarity, texture as image_texture
 from ..errors import ConfigError
 from ..io import srgb_to_linear
 from ..track import (TrackFrame, TrackOptions, labels_from_instances, link_groups,
@@ -363,7 +363,7 @@ def _chroma_hist(rgb: np.ndarray | tuple, mask: np.ndarray, bins: int = 8) -> np
     """2-D histogram [bins, bins] of the grey-world chromaticity (r, g) of ``mask`` bool [H, W]
     in ``rgb`` (sRGB [H, W, 3], or its :func:`_normalised_chroma` pair, to reuse it)."""
     c, w = rgb if isinstance(rgb, tuple) else _normalised_chroma(rgb)
-    sl = _bbox(mask)
+    sl = mask_box(mask)
     if sl is None:
         return np.zeros((bins, bins))
     c, w = c[sl], w[sl]
@@ -374,18 +374,6 @@ def _chroma_hist(rgb: np.ndarray | tuple, mask: np.ndarray, bins: int = 8) -> np
     r = np.floor(np.clip(c[sel, 0], 0, 0.999) * bins).astype(np.int64)
     g = np.floor(np.clip(c[sel, 1], 0, 0.999) * bins).astype(np.int64)
     return np.bincount(r * bins + g, minlength=bins * bins).reshape(bins, bins).astype(np.float64)
-
-
-def _bbox(mask: np.ndarray, margin: int = 0) -> tuple[slice, slice] | None:
-    """The slices of the bounding box of ``mask`` (bool [H, W]) grown by ``margin`` pixels
-    (clipped to the image), or None when it is empty: work on a region's pixels touches only
-    its box."""
-    rows, cols = np.flatnonzero(mask.any(1)), np.flatnonzero(mask.any(0))
-    if not len(rows):
-        return None
-    h, w = mask.shape
-    return (slice(max(0, rows[0] - margin), min(h, rows[-1] + 1 + margin)),
-            slice(max(0, cols[0] - margin), min(w, cols[-1] + 1 + margin)))
 
 
 def _id_chroma_hists(ids: np.ndarray, chroma: tuple[np.ndarray, np.ndarray], bins: int = 8

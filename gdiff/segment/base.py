@@ -29,6 +29,7 @@ from typing import Protocol, runtime_checkable
 
 import numpy as np
 
+from ..appearance import mask_box
 from ..errors import ConfigError
 
 BACKENDS = ("geometric", "sam")
@@ -61,12 +62,12 @@ class Instance:
 
 
 def mask_bbox(mask: np.ndarray) -> tuple[int, int, int, int]:
-    """Bounding box (x0, y0, x1, y1) of a bool mask, x1/y1 exclusive; (0, 0, 0, 0) if empty."""
-    ys = np.flatnonzero(mask.any(axis=1))
-    xs = np.flatnonzero(mask.any(axis=0))
-    if ys.size == 0:
+    """Bounding box (x0, y0, x1, y1) of a bool mask, x1/y1 exclusive; (0, 0, 0, 0) if empty
+    (:func:`gdiff.appearance.mask_box` as numbers)."""
+    sl = mask_box(mask)
+    if sl is None:
         return (0, 0, 0, 0)
-    return (int(xs[0]), int(ys[0]), int(xs[-1]) + 1, int(ys[-1]) + 1)
+    return (int(sl[1].start), int(sl[0].start), int(sl[1].stop), int(sl[0].stop))
 
 
 @runtime_checkable

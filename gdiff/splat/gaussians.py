@@ -297,9 +297,9 @@ class DensifyStats:
     size/2), ``count`` [N], how many rendered views saw the Gaussian, ``max_radius`` [N],
     largest screen radius seen, as a fraction of max(width, height).
 
-    Over the whole fit: ``seen`` [N, T], in how many training views of each of the T times the
-    Gaussian was in view (not culled, centre inside the image, whatever its opacity; see
-    :meth:`observe`). A clone or split child inherits its parent's row; refinements keep it.
+    Over the whole fit: ``seen`` [N, T], in how many rendered training views of each of the T
+    times the Gaussian was in view (not culled, centre inside the image, whatever its opacity;
+    see :meth:`observe`): renders, so a photo rendered in k epochs counts k times. A clone or split child inherits its parent's row; refinements keep it.
     """
 
     def __init__(self, n: int, device: torch.device | str | None = None, n_times: int = 2):
@@ -314,7 +314,8 @@ class DensifyStats:
     @torch.no_grad()
     def observe(self, radii: torch.Tensor, time_index: int, means2d: torch.Tensor | None = None,
                 width: int = 0, height: int = 0) -> None:
-        """Count the views of time ``time_index`` that see each Gaussian: radii [C, N] or
+        """Count the rendered views of time ``time_index`` that see each Gaussian (every call
+        adds; the same photo rendered again counts again): radii [C, N] or
         [C, N, 2] (pixels, 0 = culled: behind the camera or off the image). With ``means2d``
         [C, N, 2] (pixels) and the image size, only a Gaussian whose centre falls inside the
         image counts (one that only reaches in with its border tells little about itself)."""
@@ -328,7 +329,7 @@ class DensifyStats:
         self.seen[:, time_index] += vis.sum(0).to(self.seen.dtype)
 
     def seen_at_all_times(self, min_views: int) -> torch.Tensor:
-        """[N] bool: seen in at least ``min_views`` views of every time."""
+        """[N] bool: seen in at least ``min_views`` rendered views of every time."""
         return (self.seen >= min_views).all(dim=1)
 
     @torch.no_grad()

@@ -23,15 +23,18 @@ Training (after Wu et al., CVPR 2024, "4D Gaussian Splatting"):
 
 Per-Gaussian changes over time (``dopacity``, ``dsh0``, ``dshN``; see
 :mod:`gdiff.splat.model`) are learnt only for Gaussians in view (centre inside the image, any
-opacity) in at least ``time_min_views`` training views of *each* time; the others keep one
-state for both times. Before and after images are often taken from different places (other
+opacity) in at least ``time_min_views`` training *renders* of *each* time; the others keep one
+state for both times. The count is of renders over the whole fit, not of distinct photos:
+every photo is rendered once per epoch, so a Gaussian in view of a single photo of a time
+passes 2 after two epochs. What the gate asks is thus "seen by some photo of each time". Before and after images are often taken from different places (other
 heights, other sides), and a part of the scene seen at one time only carries no evidence of
 how it looks at the other: with the change terms free, every update from the time that sees it moves the
 shared value and the change term in opposite directions (for both parameters Adam takes
 steps of the same size), so the other time keeps its initial (after an opacity reset:
 transparent) state and novel views at that time show holes. Gating the terms lets the shared
-parameters take the whole update instead ("no change without evidence"); two views, the
-fewest that locate a change in 3D, are the default. The counts (``DensifyStats.seen``) are
+parameters take the whole update instead ("no change without evidence"). Two photos per time would
+locate a change in 3D, but a sparse capture sees many parts of its added objects from a
+single photo of each time, so the gate asks only that each time saw it at all. The counts (``DensifyStats.seen``) are
 kept for the whole fit and inherited by clones and split children; the saved model has the
 gate folded in. ``time_change_weight`` adds the mean absolute opacity change (``dopacity``,
 logit units, over the Gaussians whose change is learnt) to the loss: without it a change costs
@@ -172,7 +175,8 @@ class FitOptions:
     time_opacity: bool = True  # per-Gaussian opacity change over time (splats "dopacity")
     time_color: bool = False  # per-Gaussian diffuse colour change over time (splats "dsh0")
     time_specular: bool = True  # per-Gaussian view-dependent colour change (splats "dshN")
-    time_min_views: int = 2  # views per time that must see a Gaussian to learn its changes (0: all)
+    time_min_views: int = 2  # renders per time (not distinct photos) that must see a Gaussian
+    # to learn its changes (0: all); see the module docstring
     deform: bool = True
     deform_position: bool = True
     deform_scale: bool = True
@@ -754,7 +758,8 @@ def fit_scene(scene_dir: str | Path, cameras_json: str | Path, points_ply: str |
     gate = trainer.time_gate()
     if gate is not None:
         model.apply_time_gate(gate)  # the saved model renders as trained, without the gate
-        log.info("time terms kept for %d of %d Gaussians (seen in >= %d views of each time)",
+        log.info("time terms kept for %d of %d Gaussians (in view in >= %d renders of each "
+                 "time)",
                  int(gate.sum()), len(gate), opts.time_min_views)
     model.eval()
     seconds = time.time() - t_start

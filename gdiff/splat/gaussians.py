@@ -299,7 +299,8 @@ class DensifyStats:
 
     Over the whole fit: ``seen`` [N, T], in how many rendered training views of each of the T
     times the Gaussian was in view (not culled, centre inside the image, whatever its opacity;
-    see :meth:`observe`): renders, so a photo rendered in k epochs counts k times. A clone or split child inherits its parent's row; refinements keep it.
+    see :meth:`observe`): renders, so a photo rendered in k epochs counts k times. A clone or
+    split child inherits its parent's row; refinements keep it.
     """
 
     def __init__(self, n: int, device: torch.device | str | None = None, n_times: int = 2):

@@ -26,17 +26,18 @@ Per-Gaussian changes over time (``dopacity``, ``dsh0``, ``dshN``; see
 opacity) in at least ``time_min_views`` training *renders* of *each* time; the others keep one
 state for both times. The count is of renders over the whole fit, not of distinct photos:
 every photo is rendered once per epoch, so a Gaussian in view of a single photo of a time
-passes 2 after two epochs. What the gate asks is thus "seen by some photo of each time". Before and after images are often taken from different places (other
-heights, other sides), and a part of the scene seen at one time only carries no evidence of
-how it looks at the other: with the change terms free, every update from the time that sees it moves the
+passes 2 after two epochs. What the gate asks is thus "seen by some photo of each time".
+Before and after images are often taken from different places (other heights, other sides),
+and a part of the scene seen at one time only carries no evidence of how it looks at the
+other: with the change terms free, every update from the time that sees it moves the
 shared value and the change term in opposite directions (for both parameters Adam takes
 steps of the same size), so the other time keeps its initial (after an opacity reset:
 transparent) state and novel views at that time show holes. Gating the terms lets the shared
-parameters take the whole update instead ("no change without evidence"). Two photos per time would
-locate a change in 3D, but a sparse capture sees many parts of its added objects from a
-single photo of each time, so the gate asks only that each time saw it at all. The counts (``DensifyStats.seen``) are
-kept for the whole fit and inherited by clones and split children; the saved model has the
-gate folded in. ``time_change_weight`` adds the mean absolute opacity change (``dopacity``,
+parameters take the whole update instead ("no change without evidence"). Two photos per
+time would locate a change in 3D, but a sparse capture sees many parts of its added objects
+from a single photo of each time, so the gate asks only that each time saw it at all. The
+counts (``DensifyStats.seen``) are kept for the whole fit and inherited by clones and split
+children; the saved model has the gate folded in. ``time_change_weight`` adds the mean absolute opacity change (``dopacity``,
 logit units, over the Gaussians whose change is learnt) to the loss: without it a change costs
 nothing, and each time's images take Gaussians of their own wherever they are fitted a little
 better so. The two renders of one pose then differ in fine detail all over the scene, which the

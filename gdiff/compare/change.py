@@ -359,6 +359,14 @@ def appearance_change(rgb0: np.ndarray, rgb1: np.ndarray, chroma_tol: float,
 # per-pose comparison and per-ID decision
 # ------------------------------------------------------------------------------------------
 
+def _chroma_bin(c: np.ndarray, bins: int) -> np.ndarray:
+    """Flat bin index int64 [K] (``r * bins + g``) of chromaticities ``c`` [K, 3]: bins of equal
+    width over [0, 1) (the same bins as np.histogram2d with that range)."""
+    r = np.floor(np.clip(c[:, 0], 0, 0.999) * bins).astype(np.int64)
+    g = np.floor(np.clip(c[:, 1], 0, 0.999) * bins).astype(np.int64)
+    return r * bins + g
+
+
 def _chroma_hist(rgb: np.ndarray | tuple, mask: np.ndarray, bins: int = 8) -> np.ndarray:
     """2-D histogram [bins, bins] of the grey-world chromaticity (r, g) of ``mask`` bool [H, W]
     in ``rgb`` (sRGB [H, W, 3], or its :func:`_normalised_chroma` pair, to reuse it)."""
@@ -370,10 +378,8 @@ def _chroma_hist(rgb: np.ndarray | tuple, mask: np.ndarray, bins: int = 8) -> np
     sel = mask[sl] & (w > 0.3)
     if not sel.any():
         return np.zeros((bins, bins))
-    # bins of equal width over [0, 1) (the same bins as np.histogram2d with that range)
-    r = np.floor(np.clip(c[sel, 0], 0, 0.999) * bins).astype(np.int64)
-    g = np.floor(np.clip(c[sel, 1], 0, 0.999) * bins).astype(np.int64)
-    return np.bincount(r * bins + g, minlength=bins * bins).reshape(bins, bins).astype(np.float64)
+    return np.bincount(_chroma_bin(c[sel], bins), minlength=bins * bins
+                       ).reshape(bins, bins).astype(np.float64)
 
 
 def _id_chroma_hists(ids: np.ndarray, chroma: tuple[np.ndarray, np.ndarray], bins: int = 8
@@ -383,10 +389,8 @@ def _id_chroma_hists(ids: np.ndarray, chroma: tuple[np.ndarray, np.ndarray], bin
     pixels; ``chroma``: the image's :func:`_normalised_chroma` pair)."""
     c, w = chroma
     sel = (w > 0.3) & (ids > 0)
-    r = np.floor(np.clip(c[sel, 0], 0, 0.999) * bins).astype(np.int64)
-    g = np.floor(np.clip(c[sel, 1], 0, 0.999) * bins).astype(np.int64)
     n = int(ids.max()) + 1 if ids.size else 1
-    key = ids[sel].astype(np.int64) * (bins * bins) + r * bins + g
+    key = ids[sel].astype(np.int64) * (bins * bins) + _chroma_bin(c[sel], bins)
     return np.bincount(key, minlength=n * bins * bins).reshape(n, bins, bins).astype(np.float64)
 
 

@@ -37,13 +37,14 @@ parameters take the whole update instead ("no change without evidence"). Two pho
 time would locate a change in 3D, but a sparse capture sees many parts of its added objects
 from a single photo of each time, so the gate asks only that each time saw it at all. The
 counts (``DensifyStats.seen``) are kept for the whole fit and inherited by clones and split
-children; the saved model has the gate folded in. ``time_change_weight`` adds the mean absolute opacity change (``dopacity``,
-logit units, over the Gaussians whose change is learnt) to the loss: without it a change costs
-nothing, and each time's images take Gaussians of their own wherever they are fitted a little
-better so. The two renders of one pose then differ in fine detail all over the scene, which the
-comparison must tell from a change; with it the times share their Gaussians, and an opacity
-changes where the images of the two times disagree. The default is a light price; even so it
-can weaken the change of a small, far object, and a much higher one does so more.
+children; the saved model has the gate folded in. ``time_change_weight`` adds the mean
+absolute opacity change (``dopacity``, logit units, over the Gaussians whose change is
+learnt) to the loss: without it a change costs nothing, and each time's images take
+Gaussians of their own wherever they are fitted a little better so. The two renders of one
+pose then differ in fine detail all over the scene, which the comparison must tell from a
+change; with it the times share their Gaussians, and an opacity changes where the images of
+the two times disagree. The default is a light price; even so it can weaken the change of a
+small, far object, and a much higher one does so more.
 
 Each iteration renders one training image at the working resolution (``max_side``); every
 image is used once per epoch, before and after images alternating (random order within a
@@ -759,9 +760,8 @@ def fit_scene(scene_dir: str | Path, cameras_json: str | Path, points_ply: str |
     gate = trainer.time_gate()
     if gate is not None:
         model.apply_time_gate(gate)  # the saved model renders as trained, without the gate
-        log.info("time terms kept for %d of %d Gaussians (in view in >= %d renders of each "
-                 "time)",
-                 int(gate.sum()), len(gate), opts.time_min_views)
+        log.info("time terms kept for %d of %d Gaussians (in view in >= %d renders of each"
+                 " time)", int(gate.sum()), len(gate), opts.time_min_views)
     model.eval()
     seconds = time.time() - t_start
     quality = evaluate_views(model, views, opts.backend, trainer.exposure)

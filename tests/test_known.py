@@ -24,7 +24,7 @@ from gdiff.importers import detect_format, import_scene
 from gdiff.io import read_image, write_image
 from gdiff.sfm import PosesOptions, read_cameras_file, run_poses
 from gdiff.sfm.seed import depth_range, empty_cells
-from gdiff.sfm.refine_known import _place_untied, common_turn, turn_between
+from gdiff.sfm.refine_known import _between, _place_untied, common_turn, turn_between
 from gdiff.sfm.undistort import boxes_to_pinhole, undistort_points, undistorted_camera
 from gdiff.splat.ply import read_points
 
@@ -320,6 +320,19 @@ def test_turn_between_two_photos_from_one_place():
     assert k > 200
     assert rotation_angle_deg(true.T @ M) < 0.5
     assert turn_between(np.zeros((3, 2)), np.zeros((3, 2)), a.K, b.K, 4.0) == (None, 0)
+
+
+def test_angle_between_two_photos_for_the_log():
+    """The poses log gives, per photo turned to agree with another, the angle between the two
+    as placed and as given: from cameras or camera-to-world matrices alike, whatever the
+    centres."""
+    a = _look(np.eye(4), [0, 30, 0], [1.0, 2.0, 0.5])
+    b = _look(a, [0, 7.5, 0], [0.3, 0, 0])
+    cams = {"after/v04.png": Camera(640, 480, 540.0, 540.0, 320.0, 240.0, b),
+            "before/v04.png": Camera(640, 480, 540.0, 540.0, 320.0, 240.0, a)}
+    assert _between(cams, "after/v04.png", "before/v04.png") == pytest.approx(7.5)
+    poses = {n: c.c2w for n, c in cams.items()}
+    assert _between(poses, "before/v04.png", "after/v04.png") == pytest.approx(7.5)
 
 
 def test_untied_photos_are_turned_to_agree_with_a_photo_from_the_same_place():

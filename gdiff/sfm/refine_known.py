@@ -89,11 +89,9 @@ def _back_to_given(adjusted: list[np.ndarray], given: list[np.ndarray], reach: f
     return umeyama_sim3(_anchor_points(adjusted, reach / s0), _anchor_points(given, reach))
 
 
-def _between(poses: dict, a: str, b: str) -> float:
-    """Degrees between the orientations of images ``a`` and ``b`` (``poses[name]``: a
-    :class:`gdiff.cameras.Camera` or a camera-to-world [4, 4] matrix)."""
-    ra, rb = (np.asarray(getattr(poses[n], "c2w", poses[n]))[:3, :3] for n in (a, b))
-    return float(rotation_angle_deg(rb.T @ ra))
+def _between(a: np.ndarray, b: np.ndarray) -> float:
+    """Degrees between the orientations of two camera-to-world poses [4, 4]."""
+    return float(rotation_angle_deg(b[:3, :3].T @ a[:3, :3]))
 
 
 def _pair_matches(db: Path) -> dict[tuple[str, str], tuple[np.ndarray, np.ndarray]]:
@@ -398,8 +396,9 @@ def refine_known_poses(rec, db: Path, root: Path, work: Path, cams: dict[str, Ca
              "camera spread); %d tied to the others by fewer than %d points%s%s",
              first, wide, rec.num_points3D(), strict, len(info["refined"]), info["rotation_deg"],
              info["centre"], 100 * info["centre_frac"], len(loose), opts.min_num_matches,
-             "".join(f"; {n} turned to agree with {m} ({how} turn; {_between(cams, n, m):.2f} deg "
-                     f"between them, {_between(given, n, m):.2f} as given)"
+             "".join(f"; {n} turned to agree with {m} ({how} turn; "
+                     f"{_between(cams[n].c2w, cams[m].c2w):.2f} deg between them, "
+                     f"{_between(given[n], given[m]):.2f} as given)"
                      for n, (m, how) in info["paired"].items()),
              "".join(f"; {n} turned by the refined images' common correction "
                      f"({info['common_turn_deg']:.2f} deg)" for n in info["anchored"])

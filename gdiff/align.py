@@ -50,6 +50,12 @@ def rotation_angle_deg(R: np.ndarray) -> np.ndarray:
     return np.degrees(np.arccos(np.clip((tr - 1.0) / 2.0, -1.0, 1.0)))
 
 
+def angle_between_deg(a: np.ndarray, b: np.ndarray) -> float:
+    """Degrees between the orientations of two poses [4, 4] (or rotations [3, 3]) given the same
+    way, camera-to-world or world-to-camera; either order."""
+    return float(rotation_angle_deg(np.asarray(b)[:3, :3].T @ np.asarray(a)[:3, :3]))
+
+
 def orbit_radius(centers: np.ndarray) -> float:
     """Median distance of camera centres [N, 3] from their centroid (the scale of the capture)."""
     c = np.asarray(centers, dtype=np.float64)

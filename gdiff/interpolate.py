@@ -42,7 +42,7 @@ from pathlib import Path
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from .align import orbit_radius, rotation_angle_deg
+from .align import angle_between_deg, orbit_radius, rotation_angle_deg
 from .cameras import Camera, image_root, load_cameras
 from .errors import SceneError
 from .io import read_json, write_json
@@ -251,7 +251,7 @@ def order_poses(cams: list[Camera], options: InterpolateOptions, scale: float,
 def _gap_count(a: Camera, b: Camera, options: InterpolateOptions, scale: float) -> int:
     n = options.n
     if options.max_angle_deg is not None:
-        ang = float(rotation_angle_deg(a.c2w[:3, :3].T @ b.c2w[:3, :3]))
+        ang = angle_between_deg(a.c2w, b.c2w)
         n = max(n, math.ceil(ang / options.max_angle_deg - 1e-9) - 1)
     if options.max_step is not None:
         dist = float(np.linalg.norm(a.center - b.center)) / scale
@@ -287,7 +287,7 @@ def interpolate_path(keys: list[Camera], options: InterpolateOptions, scale: flo
                      else "capture order")
         log.info("%s: %d key poses, order: %s; largest step %s -> %s: %.1f deg, %.3f scene "
                  "radii; %d frames", name, len(keys), order_txt, a.image, b.image,
-                 float(rotation_angle_deg(a.c2w[:3, :3].T @ b.c2w[:3, :3])),
+                 angle_between_deg(a.c2w, b.c2w),
                  float(np.linalg.norm(a.center - b.center)) / scale, len(frames))
     return frames, order, reordered
 

@@ -15,7 +15,8 @@ import pytest
 import yaml
 from scipy.spatial.transform import Rotation
 
-from gdiff.align import orbit_radius, pose_errors, relative_rotation_errors, rotation_angle_deg
+from gdiff.align import (angle_between_deg, orbit_radius, pose_errors, relative_rotation_errors,
+                         rotation_angle_deg)
 from gdiff.cameras import (PHOTO_CAMERAS, Camera, cameras_from_json, cameras_to_json, image_root,
                            load_cameras)
 from gdiff.errors import SceneError
@@ -24,7 +25,7 @@ from gdiff.importers import detect_format, import_scene
 from gdiff.io import read_image, write_image
 from gdiff.sfm import PosesOptions, read_cameras_file, run_poses
 from gdiff.sfm.seed import depth_range, empty_cells
-from gdiff.sfm.refine_known import _between, _place_untied, common_turn, turn_between
+from gdiff.sfm.refine_known import _place_untied, common_turn, turn_between
 from gdiff.sfm.undistort import boxes_to_pinhole, undistort_points, undistorted_camera
 from gdiff.splat.ply import read_points
 
@@ -327,8 +328,8 @@ def test_angle_between_two_photos_for_the_log():
     as placed and as given: either order, whatever the centres."""
     a = _look(np.eye(4), [0, 30, 0], [1.0, 2.0, 0.5])
     b = _look(a, [0, 7.5, 0], [0.3, 0, 0])
-    assert _between(b, a) == pytest.approx(7.5)
-    assert _between(a, b) == pytest.approx(7.5)
+    assert angle_between_deg(b, a) == pytest.approx(7.5)
+    assert angle_between_deg(a, b) == pytest.approx(7.5)
 
 
 def test_untied_photos_are_turned_to_agree_with_a_photo_from_the_same_place():

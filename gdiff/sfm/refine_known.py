@@ -31,7 +31,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..align import orbit_radius, rotation_angle_deg, umeyama_sim3
+from ..align import angle_between_deg, orbit_radius, rotation_angle_deg, umeyama_sim3
 from ..cameras import Camera
 from .colmap import _c2w_of, _mapper_options, bundle_options
 from .options import PosesOptions
@@ -87,11 +87,6 @@ def _back_to_given(adjusted: list[np.ndarray], given: list[np.ndarray], reach: f
     a, g = _spread(adjusted), _spread(given)
     s0 = g / a if a > 1e-12 and g > 1e-12 else 1.0  # cameras at one spot: no scale to see
     return umeyama_sim3(_anchor_points(adjusted, reach / s0), _anchor_points(given, reach))
-
-
-def _between(a: np.ndarray, b: np.ndarray) -> float:
-    """Degrees between the orientations of two camera-to-world poses [4, 4]."""
-    return float(rotation_angle_deg(b[:3, :3].T @ a[:3, :3]))
 
 
 def _pair_matches(db: Path) -> dict[tuple[str, str], tuple[np.ndarray, np.ndarray]]:
@@ -382,7 +377,7 @@ def refine_known_poses(rec, db: Path, root: Path, work: Path, cams: dict[str, Ca
                 _set_pose(rec, by_name[n], c2w)
         info["common_turn_deg"] = float(rotation_angle_deg(turn))
         pycolmap.ObservationManager(rec).filter_all_points3D(strict, 1.5)
-        rot = [float(rotation_angle_deg(given[n][:3, :3].T @ new[n][:3, :3])) for n in refined]
+        rot = [angle_between_deg(new[n], given[n]) for n in refined]
         ctr = [float(np.linalg.norm(new[n][:3, 3] - given[n][:3, 3])) for n in refined]
         radius = orbit_radius(np.stack([given[n][:3, 3] for n in names]))
         info.update(rotation_deg=float(np.median(rot)), centre=float(np.median(ctr)),
@@ -397,8 +392,8 @@ def refine_known_poses(rec, db: Path, root: Path, work: Path, cams: dict[str, Ca
              first, wide, rec.num_points3D(), strict, len(info["refined"]), info["rotation_deg"],
              info["centre"], 100 * info["centre_frac"], len(loose), opts.min_num_matches,
              "".join(f"; {n} turned to agree with {m} ({how} turn; "
-                     f"{_between(cams[n].c2w, cams[m].c2w):.2f} deg between them, "
-                     f"{_between(given[n], given[m]):.2f} as given)"
+                     f"{angle_between_deg(cams[n].c2w, cams[m].c2w):.2f} deg between them, "
+                     f"{angle_between_deg(given[n], given[m]):.2f} as given)"
                      for n, (m, how) in info["paired"].items()),
              "".join(f"; {n} turned by the refined images' common correction "
                      f"({info['common_turn_deg']:.2f} deg)" for n in info["anchored"])

@@ -87,6 +87,9 @@ def test_tiny_end_to_end_with_sigkill_and_local_cluster(tmp_path):
     assert ((cov["depth"] <= cov["seen"]) & (cov["seen"] <= cov["surface"])).all()
     keyed = cov.dropna(subset=["key"])
     assert set(zip(keyed["path"], keyed["frame"])) == set(zip(kf["path"], kf["frame"]))
+    # how well the two times' renders line up: measured at the key poses only
+    assert keyed["lineup_matches"].notna().all() and keyed["lined_up"].notna().all()
+    assert cov.loc[cov["key"].isna(), "lined_up"].isna().all()
     # the EXR frames are temporary: deleted once segment and compare have read them
     assert not (res / "render/p1/t0").exists() and not (res / "render/p2/t1").exists()
     log = pd.read_csv(res / "fit/train_log.csv")

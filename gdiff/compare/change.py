@@ -185,6 +185,11 @@ class CompareOptions:
         the pixel's ray, and within this many times the pair's median colour difference
         (:mod:`gdiff.compare.agree`). Where the photos of both visits agree nothing changed,
         whatever the other time's model renders there. 0: off.
+    lineup_share: a key pose whose t0 and t1 renders line up on less than this share of the
+        scene's median (the share of feature matches in place, :mod:`gdiff.compare.lineup`)
+        is named in the log and ``coverage.csv`` (``lined_up`` false): the models of the two
+        visits disagree there on where things are, and the ID comparison's marks there are
+        uncertain. Nothing is removed. 0: not checked.
     """
 
     presence_iou: float = 0.3
@@ -222,6 +227,7 @@ class CompareOptions:
     spread_vote: float = 0.3
     complete_reach: float = 1.0
     photo_agree: float = 3.0
+    lineup_share: float = 0.5
 
     def observed_step(self, height: int, width: int) -> int:
         """Pixel step of the coverage test on a ``height`` x ``width`` frame (see
@@ -248,6 +254,9 @@ class CompareOptions:
             raise ConfigError("config key 'compare.confirm_colour' must lie in [0, 2]")
         if self.confirm_photo < 0:
             raise ConfigError("config key 'compare.confirm_photo' must be >= 0")
+        if not 0 <= self.lineup_share <= 1:
+            raise ConfigError("config key 'compare.lineup_share' must lie in [0, 1] (0: not "
+                              "checked)")
         if not 0 <= self.confirm_colour_points <= 1:
             raise ConfigError("config key 'compare.confirm_colour_points' must lie in [0, 1]")
         if not 0 < self.surround_width < 0.5:

@@ -39,6 +39,7 @@ from .change import (HIDDEN_SHARE, CompareOptions, appearance_change, change_mas
 from .complete import complete_key_masks, key_differences
 from .coverage import (JUDGED_DEPTH, JUDGED_SEEN, DepthView, judged_counts, judged_map, observed,
                        surface)
+from .lineup import in_place_px, poorly_lined_up, render_lineup
 from .geometry import (GeometryEvidence, flat_flags, pixel_scale, pose_flags, pose_record,
                        write_evidence)
 from .photos import (KeyPhoto, alike_components, load_photo, point_photo_counts,
@@ -309,6 +310,7 @@ def compare_paths(ids: dict[Key, np.ndarray], frames: dict[Key, dict] | None,
     df.attrs["evidence3d"] = evidence
     df.attrs["judged"] = judged
     df.attrs["coverage"] = coverage
+    df.attrs["light_changed"] = bool(light_changed)
     return masks, df
 
 
@@ -354,7 +356,8 @@ def _leave_out_agreeing(masks, key_photos: list[KeyPhoto], contrast: float,
 
 
 COVERAGE_COLUMNS = ["path", "frame", "key", "surface", "seen", "depth", "seen_frac",
-                    "depth_frac", "not_judged_frac"]
+                    "depth_frac", "not_judged_frac", "lineup_matches", "lineup_in_place",
+                    "lined_up"]
 
 
 def coverage_table(judged: dict[tuple[str, int], np.ndarray],
@@ -364,7 +367,9 @@ def coverage_table(judged: dict[tuple[str, int], np.ndarray],
     training photo taken there, 0 or 1, or empty), the pixel counts ``surface`` (a surface at
     both times), ``seen`` (judged: shown by a photo of each time) and ``depth`` (judged also by
     depth), and ``seen_frac``, ``depth_frac`` and ``not_judged_frac`` (shares of ``surface``;
-    empty when it is 0). Columns :data:`COVERAGE_COLUMNS`."""
+    empty when it is 0); ``lineup_matches``, ``lineup_in_place`` and ``lined_up`` are left
+    empty (:func:`lineup_table` fills them at the key poses). Columns
+    :data:`COVERAGE_COLUMNS`."""
     rows = []
     for (p, i), jd in sorted(judged.items()):
         c = judged_counts(jd)
@@ -375,8 +380,56 @@ def coverage_table(judged: dict[tuple[str, int], np.ndarray],
                          not_judged_frac=1 - c["seen"] / n if n else None))
     df = pd.DataFrame(rows, columns=COVERAGE_COLUMNS)
     df["key"] = df["key"].astype("Int64")
+    df["lineup_matches"] = df["lineup_matches"].astype("Int64")
+    df["lined_up"] = df["lined_up"].astype("boolean")
     for c in ("surface", "seen", "depth"):
         df[c] = df[c].astype(np.int64)
+    return df
+
+
+def lineup_table(load, keys: dict[tuple[str, int], int], meta: dict, share: float,
+                 light_changed: bool = False) -> pd.DataFrame:
+    """Per key pose (``keys``: {(path, i): time}), how well its t0 and t1 renders line up
+    (:func:`gdiff.compare.lineup.render_lineup`; ``load(key)`` returns a frame's dict with
+    ``rgb``): columns ``path``, ``frame``, ``image`` (the training photo's name from ``meta``),
+    ``lineup_matches``, ``lineup_in_place`` and ``lined_up`` (False below ``share`` of the
+    scene's median, :func:`gdiff.compare.lineup.poorly_lined_up`). Logs the median and names
+    the poses that do not line up (``light_changed``: the stage took the scene for a change of
+    light, whose moved shadows move features too; the log says so)."""
+    rows, tol = [], float("nan")
+    for p, i in sorted(keys):
+        rgb0, rgb1 = load((p, "t0", i)).get("rgb"), load((p, "t1", i)).get("rgb")
+        if rgb0 is None or rgb1 is None:
+            continue
+        lu = render_lineup(rgb0, rgb1)
+        tol = in_place_px(rgb0.shape)
+        rows.append(dict(path=p, frame=int(i), image=meta[p][i].get("image") or f"{p}/{i:05d}",
+                         lineup_matches=lu.matches, lineup_in_place=lu.in_place))
+    df = pd.DataFrame(rows, columns=["path", "frame", "image", "lineup_matches",
+                                     "lineup_in_place", "lined_up"])
+    if df.empty:
+        return df
+    bad = poorly_lined_up(df["lineup_in_place"].to_numpy(float), share)
+    df["lined_up"] = pd.array(~bad, dtype="boolean") if share > 0 else pd.NA
+    if df["lineup_in_place"].isna().all():
+        log.info("the t0 and t1 renders of the key poses share no feature match: how well they "
+                 "line up is not measured")
+        return df
+    med = float(np.nanmedian(df["lineup_in_place"]))
+    log.info("the t0 and t1 renders of the key poses line up on %.0f %% of their feature "
+             "matches (median over %d poses; a match in place: its features within %.1f px)",
+             100 * med, len(df), tol)
+    if bad.any():
+        why = ("the light changed between the visits, and moved shadows and highlights move "
+               "features too; or the models of the two visits disagree there on where things "
+               "are" if light_changed else "the models of the two visits disagree there on "
+               "where things are (check the poses of those photos)")
+        log.warning("at %d key poses the t0 and t1 renders do not line up (below %.0f %% of the "
+                    "median): %s. %s, and the changes marked there are uncertain",
+                    int(bad.sum()), 100 * share,
+                    ", ".join(f"{r.image} ({r.lineup_in_place:.0%} of {r.lineup_matches} "
+                              "matches)" if r.lineup_matches else f"{r.image} (no match)"
+                              for r in df[bad].itertuples()), why[0].upper() + why[1:])
     return df
 
 
@@ -853,6 +906,15 @@ def compare(instances_dir, poses_json, out_dir, options: CompareOptions | None =
                              time=keys[(p, i)], mask_t0=rel["t0"], mask_t1=rel["t1"],
                              mask_union=rel["union"], judged=rel["judged"]))
     coverage = df.attrs.get("coverage", pd.DataFrame(columns=COVERAGE_COLUMNS))
+    if o.lineup_share > 0:
+        lined = lineup_table(load, keys, meta, o.lineup_share,
+                             bool(df.attrs.get("light_changed")))
+        if len(coverage) and len(lined):
+            cols = ["lineup_matches", "lineup_in_place", "lined_up"]
+            coverage = coverage.drop(columns=cols).merge(
+                lined[["path", "frame", *cols]], on=["path", "frame"], how="left")
+            coverage["lineup_matches"] = coverage["lineup_matches"].astype("Int64")
+            coverage["lined_up"] = coverage["lined_up"].astype("boolean")
     write_csv(out_dir / "coverage.csv", coverage)
     keyed = coverage.dropna(subset=["key", "not_judged_frac"])
     if len(keyed):

@@ -39,9 +39,9 @@ from .change import (HIDDEN_SHARE, CompareOptions, appearance_change, change_mas
 from .complete import complete_key_masks, key_differences
 from .coverage import (JUDGED_DEPTH, JUDGED_SEEN, DepthView, judged_counts, judged_map, observed,
                        surface)
-from .lineup import in_place_px, poorly_lined_up, render_lineup
 from .geometry import (GeometryEvidence, flat_flags, pixel_scale, pose_flags, pose_record,
                        write_evidence)
+from .lineup import in_place_px, poorly_lined_up, render_lineup
 from .photos import (KeyPhoto, alike_components, load_photo, point_photo_counts,
                      region_photos_differ, visit_exposure)
 from .spread import count_voxels, object_voxels, spread_masks, voxel_keys
@@ -355,9 +355,10 @@ def _leave_out_agreeing(masks, key_photos: list[KeyPhoto], contrast: float,
              "ray; compare.photo_agree = %g)", removed, n, contrast)
 
 
+#: how well the t0 and t1 renders line up at a key pose (:func:`lineup_table`)
+LINEUP_COLUMNS = ["lineup_matches", "lineup_in_place", "lined_up"]
 COVERAGE_COLUMNS = ["path", "frame", "key", "surface", "seen", "depth", "seen_frac",
-                    "depth_frac", "not_judged_frac", "lineup_matches", "lineup_in_place",
-                    "lined_up"]
+                    "depth_frac", "not_judged_frac", *LINEUP_COLUMNS]
 
 
 def coverage_table(judged: dict[tuple[str, int], np.ndarray],
@@ -380,11 +381,25 @@ def coverage_table(judged: dict[tuple[str, int], np.ndarray],
                          not_judged_frac=1 - c["seen"] / n if n else None))
     df = pd.DataFrame(rows, columns=COVERAGE_COLUMNS)
     df["key"] = df["key"].astype("Int64")
-    df["lineup_matches"] = df["lineup_matches"].astype("Int64")
-    df["lined_up"] = df["lined_up"].astype("boolean")
     for c in ("surface", "seen", "depth"):
         df[c] = df[c].astype(np.int64)
-    return df
+    return _with_lineup(df)
+
+
+def _with_lineup(coverage: pd.DataFrame, lined: pd.DataFrame | None = None) -> pd.DataFrame:
+    """``coverage`` (:func:`coverage_table`) with the columns :data:`LINEUP_COLUMNS` of
+    ``lined`` (:func:`lineup_table`) at its poses (empty where ``lined`` has none, or is None),
+    typed once here: counts ``Int64``, the flag ``boolean``."""
+    cov = coverage.drop(columns=LINEUP_COLUMNS, errors="ignore")
+    if lined is not None and len(lined) and len(cov):
+        cov = cov.merge(lined[["path", "frame", *LINEUP_COLUMNS]], on=["path", "frame"],
+                        how="left")
+    else:
+        cov = cov.assign(**{c: None for c in LINEUP_COLUMNS})
+    cov["lineup_matches"] = cov["lineup_matches"].astype("Int64")
+    cov["lineup_in_place"] = cov["lineup_in_place"].astype(float)
+    cov["lined_up"] = cov["lined_up"].astype("boolean")
+    return cov[COVERAGE_COLUMNS]
 
 
 def lineup_table(load, keys: dict[tuple[str, int], int], meta: dict, share: float,
@@ -907,14 +922,8 @@ def compare(instances_dir, poses_json, out_dir, options: CompareOptions | None =
                              mask_union=rel["union"], judged=rel["judged"]))
     coverage = df.attrs.get("coverage", pd.DataFrame(columns=COVERAGE_COLUMNS))
     if o.lineup_share > 0:
-        lined = lineup_table(load, keys, meta, o.lineup_share,
-                             bool(df.attrs.get("light_changed")))
-        if len(coverage) and len(lined):
-            cols = ["lineup_matches", "lineup_in_place", "lined_up"]
-            coverage = coverage.drop(columns=cols).merge(
-                lined[["path", "frame", *cols]], on=["path", "frame"], how="left")
-            coverage["lineup_matches"] = coverage["lineup_matches"].astype("Int64")
-            coverage["lined_up"] = coverage["lined_up"].astype("boolean")
+        coverage = _with_lineup(coverage, lineup_table(load, keys, meta, o.lineup_share,
+                                                       bool(df.attrs.get("light_changed"))))
     write_csv(out_dir / "coverage.csv", coverage)
     keyed = coverage.dropna(subset=["key", "not_judged_frac"])
     if len(keyed):

@@ -131,3 +131,69 @@ def region_similarity(t0: Texture, t1: Texture, mask: np.ndarray, min_texture: f
         return float("nan")
     return float(a @ b) / np.sqrt(ea * eb)
 
+
+def normalised_chroma(rgb: np.ndarray, linear: np.ndarray | None = None
+                       ) -> tuple[np.ndarray, np.ndarray]:
+    """Grey-world-normalised chromaticity [H, W, 3] (sums to 1) and its confidence [H, W] of
+    ``rgb`` (sRGB [H, W, 3]); ``linear`` (optional): its linear values as float64, when the
+    caller has them (:func:`linear_rgb`)."""
+    lin = linear_rgb(rgb) if linear is None else linear
+    lin = lin / np.maximum(lin.reshape(-1, 3).mean(0), 1e-6)  # global colour cast removed
+    s = lin.sum(-1)
+    return lin / np.maximum(s, 1e-6)[..., None], np.clip(s / 0.15, 0, 1)
+
+
+def linear_rgb(rgb: np.ndarray) -> np.ndarray:
+    """Linear values (float64 [..., 3]) of sRGB ``rgb``."""
+    return srgb_to_linear(rgb).astype(np.float64)
+
+
+def chroma_bin(c: np.ndarray, bins: int) -> np.ndarray:
+    """Flat bin index int64 [K] (``r * bins + g``) of chromaticities ``c`` [K, 3]: bins of equal
+    width over [0, 1) (the same bins as np.histogram2d with that range)."""
+    r = np.floor(np.clip(c[:, 0], 0, 0.999) * bins).astype(np.int64)
+    g = np.floor(np.clip(c[:, 1], 0, 0.999) * bins).astype(np.int64)
+    return r * bins + g
+
+
+def chroma_hist(rgb: np.ndarray | tuple, mask: np.ndarray, bins: int = 8) -> np.ndarray:
+    """2-D histogram [bins, bins] of the grey-world chromaticity (r, g) of ``mask`` bool [H, W]
+    in ``rgb`` (sRGB [H, W, 3], or its :func:`normalised_chroma` pair, to reuse it)."""
+    c, w = rgb if isinstance(rgb, tuple) else normalised_chroma(rgb)
+    sl = mask_box(mask)
+    if sl is None:
+        return np.zeros((bins, bins))
+    c, w = c[sl], w[sl]
+    sel = mask[sl] & (w > 0.3)
+    if not sel.any():
+        return np.zeros((bins, bins))
+    return np.bincount(chroma_bin(c[sel], bins), minlength=bins * bins
+                       ).reshape(bins, bins).astype(np.float64)
+
+
+def bhattacharyya(h1, h2) -> float:
+    """Bhattacharyya coefficient in [0, 1] of two histograms (any shape, normalised here):
+    1 for the same distribution; 0 when either is None or empty."""
+    if h1 is None or h2 is None or h1.sum() == 0 or h2.sum() == 0:
+        return 0.0
+    return float(np.sqrt(h1 / h1.sum() * h2 / h2.sum()).sum())
+
+
+def matched_chroma(rgb0: np.ndarray, rgb1: np.ndarray
+                   ) -> tuple[tuple[np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarray]]:
+    """Chromaticities of two pixel-aligned views of one scene (sRGB [H, W, 3] each), with
+    ``rgb0`` first brought to ``rgb1``'s exposure and white balance: each channel scaled by
+    the median ratio of their linear values over the pixels lit in both, which a change
+    covering a minority of the frame does not move (a grey-world normalisation of each view on
+    its own would: an added red object shifts the mean). Returns ``((c0, w0), (c1, w1))``,
+    each chromaticity [H, W, 3] (sums to 1) and its confidence [H, W] in [0, 1] (0 for dark
+    pixels), in the pair form :func:`chroma_hist` takes."""
+    lin0, lin1 = linear_rgb(rgb0), linear_rgb(rgb1)
+    lit = (lin0.sum(-1) > 0.05) & (lin1.sum(-1) > 0.05)
+    if lit.any():
+        lin0 = lin0 * np.median(lin1[lit] / np.maximum(lin0[lit], 1e-6), axis=0)
+    out = []
+    for lin in (lin0, lin1):
+        s = lin.sum(-1)
+        out.append((lin / np.maximum(s, 1e-6)[..., None], np.clip(s / 0.15, 0, 1)))
+    return out[0], out[1]

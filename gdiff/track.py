@@ -19,6 +19,13 @@ associates. For every frame in chain order:
    another of similar size at the same spot (the depth check alone lets it pass), and is not
    fooled by a lighting change. Sources at the other time and another pose are not used when
    the frames carry their time (IDs cross times only where the two times are pixel-aligned).
+   Where the two times of a pose were segmented together (``TrackFrame.shared``, a sparse
+   capture whose two rendered depths disagree: :mod:`gdiff.segment.pair`), the IDs are carried
+   pixel for pixel without the depth test, and the link must also keep its colours: the
+   chromaticity histograms of the linked pixels at the two times (exposure and white balance
+   matched, :func:`gdiff.appearance.matched_chroma`) must agree
+   (``link_min_color_similarity``), as a coloured object put on a surface of another colour
+   changes them while the texture test may pass on two smooth surfaces.
 3. *Merge*: predicted masks and current segments are paired by mask IoU with the Hungarian
    algorithm (gate ``iou_gate``); unmatched segments start new tracks (IDs are never reused;
    the tracks that remain at the end are renumbered 1..K);
@@ -54,7 +61,8 @@ from scipy.optimize import linear_sum_assignment
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 
-from .appearance import Texture, region_similarity, texture as image_texture
+from .appearance import (Texture, bhattacharyya, chroma_hist, matched_chroma,
+                         region_similarity, texture as image_texture)
 from .cameras import Camera
 from .errors import ConfigError
 from .log import progress
@@ -83,6 +91,11 @@ class TrackOptions:
         masks with too little texture (``min_texture``) keep the link. -1 disables the test.
     min_texture: RMS log-colour gradient (per pixel, after removing shading) below which a
         region counts as untextured and its appearance is not compared.
+    link_min_color_similarity: where the two times of a pose were segmented together
+        (``TrackFrame.shared``), a link between them also needs at least this Bhattacharyya
+        coefficient between the chromaticity histograms of the linked pixels at the two times
+        (:func:`gdiff.appearance.chroma_hist`); pixels too dark for a chromaticity keep the
+        link. 0 disables the test.
     merge_3d: merge tracks of one object by 3D position (needs depth, cameras, times).
     merge_dist_frac: two tracks are at the same place when their median 3D points are closer
         than this fraction of the object's size (square root of its metric area).
@@ -97,6 +110,7 @@ class TrackOptions:
     flow_fb_tol: float = 1.5
     link_min_similarity: float = 0.35
     min_texture: float = 0.03
+    link_min_color_similarity: float = 0.85
     merge_3d: bool = True
     merge_dist_frac: float = 0.5
 
@@ -110,6 +124,8 @@ class TrackOptions:
             raise ConfigError("config keys 'track.max_missed' and 'track.vote_window' must be >= 0")
         if not -1.0 <= self.link_min_similarity <= 1.0:
             raise ConfigError("config key 'track.link_min_similarity' must lie in [-1, 1]")
+        if not 0.0 <= self.link_min_color_similarity <= 1.0:
+            raise ConfigError("config key 'track.link_min_color_similarity' must lie in [0, 1]")
         if self.min_texture < 0 or self.merge_dist_frac < 0:
             raise ConfigError("config keys 'track.min_texture' and 'track.merge_dist_frac' "
                               "must be >= 0")
@@ -128,6 +144,9 @@ class TrackFrame:
     name: free label for logs and tables (e.g. ("p1", "t0", 7)).
     time: 0 (before) or 1 (after), or None when unknown.
     key: the frame is the pose of a training photo of its own time (its tracks skip the vote).
+    shared: the frame was segmented together with the other time's frame of its pose
+        (:mod:`gdiff.segment.pair`); when both are, IDs cross between them pixel for pixel,
+        checked by appearance (texture and colour) instead of depth.
     cache: what is computed once per frame and used by every propagation into it.
     """
 
@@ -139,6 +158,7 @@ class TrackFrame:
     name: Hashable | None = None
     time: float | None = None
     key: bool = False
+    shared: bool = False
     cache: dict = field(default_factory=dict, repr=False, compare=False)
 
 
@@ -354,6 +374,7 @@ def track_sequence(frames: list[TrackFrame], options: TrackOptions | None = None
     areas: dict[int, int] = {}
     done_by_pose: dict[Hashable, int] = {}
     grads: dict[int, Texture] = {}
+    chromas: dict[tuple[int, int], tuple] = {}  # (source, frame) -> their matched_chroma
     positions: dict[int, dict[float, list]] = {}  # track -> time -> [(median point, size)]
     n_broken = 0
 
@@ -361,6 +382,11 @@ def track_sequence(frames: list[TrackFrame], options: TrackOptions | None = None
         if k not in grads:
             grads[k] = image_texture(frames[k].rgb, o.min_texture)
         return grads[k]
+
+    def chroma(f: int, k: int) -> tuple:
+        if (f, k) not in chromas:
+            chromas[(f, k)] = matched_chroma(frames[f].rgb, frames[k].rgb)
+        return chromas[(f, k)]
 
     for k, fr in enumerate(progress(frames, desc="track", total=len(frames))):
         labels = np.asarray(fr.labels)
@@ -388,18 +414,33 @@ def track_sequence(frames: list[TrackFrame], options: TrackOptions | None = None
                 continue  # IDs cross times only where the two times are pixel-aligned
             check = (cross_time or (same_pose and src.time is None)) and \
                 o.link_min_similarity > -1 and src.rgb is not None and fr.rgb is not None
-            pred = propagate(ids_src, src, fr, o)
+            # the two times cut together (a sparse capture): pixel for pixel, no depth test
+            shared = cross_time and same_pose and src.shared and fr.shared
+            colour = shared and o.link_min_color_similarity > 0 and src.rgb is not None \
+                and fr.rgb is not None
+            pred = ids_src.astype(np.int32) if shared else propagate(ids_src, src, fr, o)
             tids, sids, iou = _iou_table(pred, (seg_sids, seg_index))
             for a, b in zip(*np.nonzero(iou > 0)):
                 t, s = tids[a], sids[b]
-                if check and iou[a, b] >= o.iou_gate:
-                    sim = region_similarity(texture(f), texture(k),
-                                            (ids_src == t) & (labels == s), o.min_texture)
+                if (check or colour) and iou[a, b] >= o.iou_gate:
+                    both = (ids_src == t) & (labels == s)
+                    sim = (region_similarity(texture(f), texture(k), both, o.min_texture)
+                           if check else float("nan"))
                     if sim < o.link_min_similarity:  # NaN (untextured) keeps the link
                         n_broken += 1
                         log.debug("frame %s: link of track %d to segment %d broken "
                                   "(texture similarity %.2f)", fr.name, t, s, sim)
                         continue
+                    if colour:
+                        c0, c1 = chroma(f, k)
+                        h0, h1 = chroma_hist(c0, both), chroma_hist(c1, both)
+                        if h0.sum() and h1.sum() and \
+                                bhattacharyya(h0, h1) < o.link_min_color_similarity:
+                            n_broken += 1
+                            log.debug("frame %s: link of track %d to segment %d broken "
+                                      "(colour similarity %.2f)", fr.name, t, s,
+                                      bhattacharyya(h0, h1))
+                            continue
                 key = (int(t), int(s))
                 best[key] = max(best.get(key, 0.0), float(iou[a, b]))
         seg_area = np.bincount(seg_index.ravel(), minlength=len(seg_sids))
@@ -440,6 +481,7 @@ def track_sequence(frames: list[TrackFrame], options: TrackOptions | None = None
         # window (also those of same-pose partners far back) are dropped
         for j in [j for j in grads if j <= k - 2 * (o.max_missed + 2)]:
             del grads[j]
+        chromas.clear()  # only the pairs linked into this frame were needed
         if o.merge_3d and fr.depth is not None and fr.camera is not None and fr.time is not None:
             for t, rec in frame_positions(ids, fr).items():
                 positions.setdefault(t, {}).setdefault(float(fr.time), []).append(rec)

@@ -137,3 +137,70 @@ def test_grow_into_touches_only_the_pixels_to_do_and_grows_as_on_the_whole_image
         np.testing.assert_array_equal(out, _grow_into_whole_image(labels, todo, feat, max_iter))
     assert (out[todo & (labels == 0)] > 0).mean() > 0.5  # it grew
     np.testing.assert_array_equal(out[~todo], labels[~todo])  # nothing else moved
+
+
+def _pair_frames(shape=(96, 128)):
+    """Two renders of one pose: a grey plane (depth 2) with a grey box (depth 1.6) that the
+    second render draws 12 px to the right (a sparse fit's ghost), and at the right a grey box
+    at the first time where the second shows a flat red square instead (a change)."""
+    H, W = shape
+    z0, z1 = np.full(shape, 2.0, np.float32), np.full(shape, 2.0, np.float32)
+    z0[30:70, 10:40] = 1.6
+    z1[30:70, 22:52] = 1.6
+    z0[40:60, 90:110] = 1.6
+    rgb0 = np.full(shape + (3,), 0.5, np.float32)
+    rgb1 = rgb0.copy()
+    rgb1[30:70, 80:120] = (0.8, 0.15, 0.1)
+    K = np.array([[W, 0, W / 2], [0, W, H / 2], [0, 0, 1]], np.float64)
+    return (rgb0, z0), (rgb1, z1), K
+
+
+def _same_partition(a, b, mask):
+    """Share of the pixels of ``mask`` whose label pair is the commonest of both labels (1.0
+    when ``a`` and ``b`` cut ``mask`` into the same regions)."""
+    la, lb = a[mask].astype(np.int64), b[mask].astype(np.int64)
+    pairs, counts = np.unique(np.stack([la, lb]), axis=1, return_counts=True)
+    best_a = {x: 0 for x in pairs[0]}
+    best_b = {y: 0 for y in pairs[1]}
+    for (x, y), c in zip(pairs.T, counts):
+        best_a[x], best_b[y] = max(best_a[x], c), max(best_b[y], c)
+    good = sum(c for (x, y), c in zip(pairs.T, counts) if c == best_a[x] == best_b[y])
+    return good / mask.sum()
+
+
+def test_two_times_cut_together_share_their_regions():
+    (rgb0, z0), (rgb1, z1), K = _pair_frames()
+    seg = GeometricSegmenter(SegmentOptions(min_region_area=16))
+    whole = np.ones(z0.shape, bool)
+    own0, own1 = seg.label(rgb0, z0, None, K), seg.label(rgb1, z1, None, K)
+    pair0 = seg.label(rgb0, z0, None, K, other=(rgb1, z1, None))
+    pair1 = seg.label(rgb1, z1, None, K, other=(rgb0, z0, None))
+    # each time cuts the ghosted box where its own render has it; together, at both edges,
+    # and the red square of the second time along the first time's box there
+    assert _same_partition(own0, own1, whole) < 0.9
+    assert _same_partition(pair0, pair1, whole) > 0.97
+    assert len(np.unique(own1[33:67, 83:117])) == 1 and len(np.unique(pair1[33:67, 83:117])) > 1
+    with pytest.raises(ValueError, match="one size"):
+        seg.label(rgb0, z0, None, K, other=(rgb1[:50], z1[:50], None))
+
+
+def test_shared_pose():
+    from gdiff.segment.pair import depths_agree, shared_pose
+
+    (_, z0), (_, z1), _ = _pair_frames()
+    valid = np.ones(z0.shape, bool)
+    assert depths_agree(z0, z0 * 1.01, valid, 0.05) == 1.0
+    assert depths_agree(z0, z0 * 1.2, valid, 0.05) == 0.0
+    assert np.isnan(depths_agree(z0, np.full_like(z0, np.nan), valid, 0.05))
+    f0 = dict(depth=z0, alpha=np.ones_like(z0))
+    assert not shared_pose(f0, dict(depth=z1, alpha=np.ones_like(z0)), 0.05, 0.25)
+    assert shared_pose(f0, dict(depth=z0 * 1.1, alpha=np.ones_like(z0)), 0.05, 0.25)
+    # pixels one time does not show are left out of the share
+    holes = np.ones_like(z0)
+    holes[:, 20:] = 0
+    far = z0 * 1.1
+    far[:, :20] = z0[:, :20]
+    assert not shared_pose(f0, dict(depth=far, alpha=holes), 0.05, 0.25)
+    assert not shared_pose(dict(depth=None), f0, 0.05, 0.25)
+    with pytest.raises(ConfigError, match="shared_partition"):
+        SegmentOptions(shared_partition="on")

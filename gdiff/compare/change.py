@@ -48,7 +48,10 @@ import numpy as np
 import pandas as pd
 from scipy.optimize import linear_sum_assignment
 
-from ..appearance import mask_box, region_similarity, texture as image_texture
+from ..appearance import (bhattacharyya as _bhattacharyya, chroma_bin as _chroma_bin,
+                          chroma_hist as _chroma_hist, linear_rgb as _linear,
+                          normalised_chroma as _normalised_chroma, region_similarity,
+                          texture as image_texture)
 from ..errors import ConfigError
 from ..io import srgb_to_linear
 from ..track import (TrackFrame, TrackOptions, labels_from_instances, link_groups,
@@ -313,22 +316,6 @@ def coherent(mask: np.ndarray, width_frac: float) -> np.ndarray:
                             np.ones((k, k), np.uint8)) > 0
 
 
-def _normalised_chroma(rgb: np.ndarray, linear: np.ndarray | None = None
-                       ) -> tuple[np.ndarray, np.ndarray]:
-    """Grey-world-normalised chromaticity [H, W, 3] (sums to 1) and its confidence [H, W] of
-    ``rgb`` (sRGB [H, W, 3]); ``linear`` (optional): its linear values as float64, when the
-    caller has them (:func:`_linear`)."""
-    lin = _linear(rgb) if linear is None else linear
-    lin = lin / np.maximum(lin.reshape(-1, 3).mean(0), 1e-6)  # global colour cast removed
-    s = lin.sum(-1)
-    return lin / np.maximum(s, 1e-6)[..., None], np.clip(s / 0.15, 0, 1)
-
-
-def _linear(rgb: np.ndarray) -> np.ndarray:
-    """Linear values (float64 [..., 3]) of sRGB ``rgb``."""
-    return srgb_to_linear(rgb).astype(np.float64)
-
-
 def _local_ncc(a: np.ndarray, b: np.ndarray, k: int = 7) -> tuple[np.ndarray, np.ndarray]:
     """Local normalised cross-correlation [H, W] of two images over k x k windows, and the
     texture strength min(std_a, std_b) [H, W]."""
@@ -367,29 +354,6 @@ def appearance_change(rgb0: np.ndarray, rgb1: np.ndarray, chroma_tol: float,
 # ------------------------------------------------------------------------------------------
 # per-pose comparison and per-ID decision
 # ------------------------------------------------------------------------------------------
-
-def _chroma_bin(c: np.ndarray, bins: int) -> np.ndarray:
-    """Flat bin index int64 [K] (``r * bins + g``) of chromaticities ``c`` [K, 3]: bins of equal
-    width over [0, 1) (the same bins as np.histogram2d with that range)."""
-    r = np.floor(np.clip(c[:, 0], 0, 0.999) * bins).astype(np.int64)
-    g = np.floor(np.clip(c[:, 1], 0, 0.999) * bins).astype(np.int64)
-    return r * bins + g
-
-
-def _chroma_hist(rgb: np.ndarray | tuple, mask: np.ndarray, bins: int = 8) -> np.ndarray:
-    """2-D histogram [bins, bins] of the grey-world chromaticity (r, g) of ``mask`` bool [H, W]
-    in ``rgb`` (sRGB [H, W, 3], or its :func:`_normalised_chroma` pair, to reuse it)."""
-    c, w = rgb if isinstance(rgb, tuple) else _normalised_chroma(rgb)
-    sl = mask_box(mask)
-    if sl is None:
-        return np.zeros((bins, bins))
-    c, w = c[sl], w[sl]
-    sel = mask[sl] & (w > 0.3)
-    if not sel.any():
-        return np.zeros((bins, bins))
-    return np.bincount(_chroma_bin(c[sel], bins), minlength=bins * bins
-                       ).reshape(bins, bins).astype(np.float64)
-
 
 def _id_chroma_hists(ids: np.ndarray, chroma: tuple[np.ndarray, np.ndarray], bins: int = 8
                      ) -> np.ndarray:
@@ -1106,12 +1070,6 @@ def _median_position(by_dim: dict[int, list]) -> tuple[np.ndarray, float] | None
             return (np.median(np.stack([p for p, _ in by_dim[d]]), 0),
                     float(np.median([s for _, s in by_dim[d]])))
     return None
-
-
-def _bhattacharyya(h1, h2) -> float:
-    if h1 is None or h2 is None or h1.sum() == 0 or h2.sum() == 0:
-        return 0.0
-    return float(np.sqrt(h1 / h1.sum() * h2 / h2.sum()).sum())
 
 
 def _apart(p0, p1) -> bool:

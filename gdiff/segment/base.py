@@ -33,6 +33,7 @@ from ..appearance import mask_box
 from ..errors import ConfigError
 
 BACKENDS = ("geometric", "sam")
+SHARED_MODES = ("auto", "always", "never")
 
 
 @dataclass
@@ -115,6 +116,10 @@ class SegmentOptions:
     smooth_sigma: Gaussian blur (pixels, at the working resolution) before edge detection.
     max_side: images are segmented at a resolution whose longer side is at most this many
         pixels; masks are returned at full resolution.
+    shared_partition: segment the two times of a pose together (the union of their edges where
+        they look alike, linked by appearance instead of depth; gdiff/segment/pair.py):
+        ``auto`` at the poses whose two rendered depths agree on less than half of the frame
+        (a sparse capture), ``always``, or ``never``.
 
     ``sam`` backend (gdiff/segment/sam_onnx.py)
     --------------------------------------------
@@ -139,6 +144,7 @@ class SegmentOptions:
     color_edge: float = 0.15
     smooth_sigma: float = 1.0
     max_side: int = 640
+    shared_partition: str = "auto"
     # sam
     sam_encoder: str | None = None
     sam_decoder: str | None = None
@@ -162,6 +168,9 @@ class SegmentOptions:
                               f"use one of {', '.join(BACKENDS)}")
         if self.min_region_area < 1:
             raise ConfigError("config key 'segment.min_region_area' must be >= 1")
+        if self.shared_partition not in SHARED_MODES:
+            raise ConfigError(f"config key 'segment.shared_partition': unknown value "
+                              f"{self.shared_partition!r}; use one of {', '.join(SHARED_MODES)}")
 
 
 def make_segmenter(options: SegmentOptions | None = None) -> Segmenter:

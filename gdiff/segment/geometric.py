@@ -28,6 +28,7 @@ resolution whose longer side is ``max_side``; masks are returned at full resolut
 from __future__ import annotations
 
 import logging
+from dataclasses import dataclass
 
 import cv2
 import numpy as np
@@ -246,18 +247,54 @@ def grow_into(labels: np.ndarray, todo: np.ndarray, feat: np.ndarray, max_iter: 
     return labels
 
 
+@dataclass
+class _Cut:
+    """A frame at the segmenter's working resolution [h, w]: ``valid`` bool [h, w] (a
+    surface), ``edges`` bool [h, w], ``feat`` float32 [h, w, C] (what edge pixels are grown by:
+    log depth, or chromaticity without depth), ``full`` the frame's (H, W) and ``scale`` h / H."""
+
+    valid: np.ndarray
+    edges: np.ndarray
+    feat: np.ndarray
+    full: tuple[int, int]
+    scale: float
+
+
 class GeometricSegmenter:
     """Weight-free segmenter (``segment.backend: geometric``); see the module docstring."""
 
     # frames may be segmented in forked worker processes (plain numpy / OpenCV, no state)
     parallel_safe = True
+    # label() can cut a frame together with the other time's render of its pose (``other``)
+    pairs_times = True
 
     def __init__(self, options: SegmentOptions | None = None):
         self.options = options or SegmentOptions()
 
     def label(self, rgb: np.ndarray, depth: np.ndarray | None = None,
-              alpha: np.ndarray | None = None, K: np.ndarray | None = None) -> np.ndarray:
-        """Region labels int32 [H, W] at full resolution (0 = no instance), by decreasing area."""
+              alpha: np.ndarray | None = None, K: np.ndarray | None = None,
+              other: tuple | None = None) -> np.ndarray:
+        """Region labels int32 [H, W] at full resolution (0 = no instance), by decreasing area.
+
+        ``other``: ``(rgb, depth, alpha)`` of the same pose rendered at the other time (the
+        same camera ``K`` and size), or None. When given, the frame is also cut along the other
+        time's edges, so the two times of the pose are cut into the same regions (up to the
+        pixels each time shows; edge pixels grow back by each time's own depth), see
+        :mod:`gdiff.segment.pair`.
+        """
+        cut = self._cut(rgb, depth, alpha, K)
+        edges = cut.edges
+        if other is not None:
+            o_rgb, o_depth, o_alpha = other
+            if np.shape(o_rgb)[:2] != np.shape(rgb)[:2]:
+                raise ValueError("the two times of a pose must be rendered at one size, got "
+                                 f"{np.shape(rgb)[:2]} and {np.shape(o_rgb)[:2]}")
+            oc = self._cut(o_rgb, o_depth, o_alpha, K)
+            edges = edges | oc.edges
+        return self._regions(cut, edges, alpha)
+
+    def _cut(self, rgb, depth, alpha, K) -> "_Cut":
+        """The frame at the working resolution and its edges (see the module docstring)."""
         o = self.options
         rgb = np.asarray(rgb, dtype=np.float32)
         H, W = rgb.shape[:2]
@@ -307,6 +344,14 @@ class GeometricSegmenter:
         if feat is None:
             chrom, _ = chromaticity(rgb_s)
             feat = chrom
+        return _Cut(valid=valid, edges=edges, feat=feat.astype(np.float32),
+                    full=(H, W), scale=s)
+
+    def _regions(self, cut: "_Cut", edges: np.ndarray, alpha) -> np.ndarray:
+        """Labels int32 [H, W] (full resolution, by decreasing area) of the regions ``edges``
+        bool [h, w] (working resolution) leave of ``cut``'s valid pixels."""
+        o = self.options
+        (H, W), (h, w), s, valid = cut.full, cut.valid.shape, cut.scale, cut.valid
         n, labels = cv2.connectedComponents((valid & ~edges).astype(np.uint8), connectivity=4)
         # keep small cores (edge bands eat into small objects); the final area test is after
         # the cores have grown back over the edge pixels
@@ -314,8 +359,7 @@ class GeometricSegmenter:
         areas = np.bincount(labels.ravel(), minlength=n)
         small_ids = np.flatnonzero(areas < min_core)
         labels[np.isin(labels, small_ids)] = 0
-        labels = grow_into(labels.astype(np.int32), valid & (labels == 0),
-                           feat.astype(np.float32))
+        labels = grow_into(labels.astype(np.int32), valid & (labels == 0), cut.feat)
         if (h, w) != (H, W):
             labels = cv2.resize(labels, (W, H), interpolation=cv2.INTER_NEAREST)
             if alpha is not None:

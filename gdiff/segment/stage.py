@@ -27,6 +27,7 @@ from ..parallel import ordered_map
 from ..track import (TrackFrame, TrackOptions, chain_order, labels_from_instances, narrow_ids,
                      track_sequence)
 from .base import Segmenter, SegmentOptions, make_segmenter
+from .pair import shared_pose
 
 log = logging.getLogger("gdiff.segment")
 
@@ -41,12 +42,12 @@ class _Chain(Sequence):
     back in the chain) is loaded again.
     """
 
-    def __init__(self, order: list[Key], get, segmenter: Segmenter, keep: int,
+    def __init__(self, order: list[Key], get, segment: "_SegmentKey", keep: int,
                  key_poses: dict[tuple[str, int], int] | None = None,
-                 ahead: Iterator[np.ndarray] | None = None):
-        self.order, self.get, self.segmenter, self.keep = order, get, segmenter, max(2, keep)
+                 ahead: Iterator[tuple[np.ndarray, bool]] | None = None):
+        self.order, self.get, self.segment, self.keep = order, get, segment, max(2, keep)
         self.key_poses = key_poses or {}
-        self.labels: dict[int, np.ndarray] = {}
+        self.labels: dict[int, tuple[np.ndarray, bool]] = {}  # (labels, shared partition)
         self.ahead = ahead  # labels of the frames in chain order, segmented elsewhere
         self.cache: OrderedDict[int, TrackFrame] = OrderedDict()
 
@@ -64,12 +65,15 @@ class _Chain(Sequence):
         cam = f.get("camera")
         if self.ahead is not None:  # taken as they come, up to this frame
             while k not in self.labels:
-                self.labels[len(self.labels)] = narrow_ids(next(self.ahead))
+                labels, shared = next(self.ahead)
+                self.labels[len(self.labels)] = (narrow_ids(labels), shared)
         if k not in self.labels:
-            self.labels[k] = narrow_ids(_segment_frame(self.segmenter, f))
-        tf = TrackFrame(labels=self.labels[k], rgb=f["rgb"], depth=f.get("depth"), camera=cam,
+            labels, shared = self.segment(key, f)
+            self.labels[k] = (narrow_ids(labels), shared)
+        labels, shared = self.labels[k]
+        tf = TrackFrame(labels=labels, rgb=f["rgb"], depth=f.get("depth"), camera=cam,
                         pose_key=(key[0], key[2]), name=key, time=TIMES.index(key[1]),
-                        key=(key[0], key[2]) in self.key_poses)
+                        key=(key[0], key[2]) in self.key_poses, shared=shared)
         self.cache[k] = tf
         while len(self.cache) > self.keep:
             self.cache.popitem(last=False)
@@ -84,34 +88,50 @@ def _frame(get, key: Key) -> dict:
     return f
 
 
-def _segment_frame(segmenter: Segmenter, f: dict) -> np.ndarray:
-    cam = f.get("camera")
-    return segment_labels(segmenter, f["rgb"], f.get("depth"), f.get("alpha"),
-                          cam.K if cam is not None else None)
+class _SegmentKey:
+    """Segment labels of one frame key, read through ``get`` (also run in worker processes):
+    ``(labels int32 [H, W], shared)``. ``shared``: the frame was segmented together with the
+    other time's render of its pose (:mod:`gdiff.segment.pair`), by ``shared_partition``
+    (``auto``: where the two rendered depths agree within ``depth_tol_rel`` on less than half
+    of the frame). Backends without a ``label`` that takes the other time never share."""
 
-
-class _SegmentAhead:
-    """Segment labels of one frame key, read through ``get`` (run in a worker process)."""
-
-    def __init__(self, get, segmenter: Segmenter):
+    def __init__(self, get, segmenter: Segmenter, shared_partition: str = "never",
+                 depth_tol_rel: float = 0.05, alpha_min: float = 0.0):
         self.get, self.segmenter = get, segmenter
+        self.mode = shared_partition if getattr(segmenter, "pairs_times", False) else "never"
+        self.depth_tol_rel, self.alpha_min = depth_tol_rel, alpha_min
 
-    def __call__(self, key: Key) -> np.ndarray:
-        return _segment_frame(self.segmenter, _frame(self.get, key))
+    def __call__(self, key: Key, f: dict | None = None) -> tuple[np.ndarray, bool]:
+        f = _frame(self.get, key) if f is None else f
+        other = None
+        if self.mode != "never":
+            p, t, i = key
+            g = _frame(self.get, (p, TIMES[1 - TIMES.index(t)], i))
+            if self.mode == "always" or shared_pose(f, g, self.depth_tol_rel, self.alpha_min):
+                other = (g["rgb"], g.get("depth"), g.get("alpha"))
+        cam = f.get("camera")
+        labels = segment_labels(self.segmenter, f["rgb"], f.get("depth"), f.get("alpha"),
+                                cam.K if cam is not None else None, other=other)
+        return labels, other is not None
 
 
 def segment_labels(segmenter: Segmenter, rgb: np.ndarray, depth=None, alpha=None,
-                   K=None) -> np.ndarray:
+                   K=None, other=None) -> np.ndarray:
     """Segment labels int32 [H, W] of one frame (0 = none; 1.. in the segmenter's order):
     the segmenter's own ``label`` map when it has one (the same labels without building one
-    full-size mask per instance), else its instances painted in order."""
+    full-size mask per instance), else its instances painted in order. ``other``: the
+    ``(rgb, depth, alpha)`` of the pose's other time to segment together with (only for a
+    segmenter with ``pairs_times``, see :class:`_SegmentKey`)."""
+    if other is not None:
+        return np.asarray(segmenter.label(rgb, depth, alpha, K, other=other), np.int32)
     if hasattr(segmenter, "label"):
         return np.asarray(segmenter.label(rgb, depth, alpha, K), np.int32)
     return labels_from_instances(segmenter.segment(rgb, depth, alpha, K), rgb.shape[:2])
 
 
 def track_paths(frames, segmenter: Segmenter, track_options: TrackOptions | None = None,
-                key_poses: dict[tuple[str, int], int] | None = None, workers: int = 1
+                key_poses: dict[tuple[str, int], int] | None = None, workers: int = 1,
+                shared_partition: str = "never", alpha_min: float = 0.0
                 ) -> tuple[dict[Key, np.ndarray], pd.DataFrame]:
     """Segment and track all frames in one ID space.
 
@@ -125,9 +145,12 @@ def track_paths(frames, segmenter: Segmenter, track_options: TrackOptions | None
     (:attr:`gdiff.track.TrackFrame.key`). ``workers`` > 1: the frames are segmented on that
     many processes (:func:`gdiff.parallel.ordered_map`; only segmenters with ``parallel_safe``)
     while this process tracks them in order, each as soon as its labels are there; the result
-    does not depend on it.
+    does not depend on it. ``shared_partition`` (``auto``, ``always``, ``never``) and
+    ``alpha_min``: where the two times of a pose are segmented together (:class:`_SegmentKey`;
+    the tracker then links them by appearance, :attr:`gdiff.track.TrackFrame.shared`).
     Returns (ID map int32 [H, W] per key, tracks table with id, first, last, n_frames,
-    mean_area; first/last as "path/t/NNNNN").
+    mean_area; first/last as "path/t/NNNNN"). ``tracks.attrs["shared"]``: the keys segmented
+    together with their other time.
     """
     if isinstance(frames, tuple):
         keys, get = frames
@@ -144,14 +167,15 @@ def track_paths(frames, segmenter: Segmenter, track_options: TrackOptions | None
         raise SceneError(f"rendered frames missing for {missing[:3]} (every path needs the same "
                          "frames at t0 and t1); re-run the render stage")
     o = track_options or TrackOptions()
+    segment = _SegmentKey(get, segmenter, shared_partition, o.depth_tol_rel, alpha_min)
     ahead = None
     if workers > 1 and getattr(segmenter, "parallel_safe", False):
         # the workers segment the frames in chain order while the tracker follows them here
         # (it takes each frame's labels as they come); the workers read each frame for its
         # labels only, the tracker reads it again when it gets there (holding every frame's
         # images until then would not fit on long paths)
-        ahead = ordered_map(_SegmentAhead(get, segmenter), order, workers, chunksize=4)
-    chain = _Chain(order, get, segmenter, keep=o.max_missed + 3,
+        ahead = ordered_map(segment, order, workers, chunksize=4)
+    chain = _Chain(order, get, segment, keep=o.max_missed + 3,
                    key_poses=key_poses, ahead=ahead)
     try:
         res = track_sequence(chain, o)
@@ -163,6 +187,7 @@ def track_paths(frames, segmenter: Segmenter, track_options: TrackOptions | None
     fmt = lambda k: f"{order[k][0]}/{order[k][1]}/{order[k][2]:05d}"  # noqa: E731
     tracks["first"] = [fmt(k) for k in tracks["first"]]
     tracks["last"] = [fmt(k) for k in tracks["last"]]
+    tracks.attrs["shared"] = sorted(order[k] for k, (_, sh) in chain.labels.items() if sh)
     return ids, tracks
 
 
@@ -203,7 +228,17 @@ def segment_and_track(render_dir, poses_json, out_dir, options: SegmentOptions |
 
     # frames are read on demand (all of them at once would not fit in memory on long paths)
     ids, tracks = track_paths((list(files), load), seg, track_options,
-                              key_poses=key_frames(meta), workers=workers)
+                              key_poses=key_frames(meta), workers=workers,
+                              shared_partition=options.shared_partition,
+                              alpha_min=options.alpha_min)
+    shared = set(tracks.attrs.get("shared", []))
+    n_poses = len({(p, i) for p, _, i in ids})
+    n_shared = len({(p, i) for p, _, i in shared})
+    if n_shared:
+        log.info("segmented the two times together at %d of %d poses (segment.shared_partition "
+                 "%s: their rendered depths agree within track.depth_tol_rel on less than half "
+                 "of the frame, so the times are linked by appearance there)", n_shared, n_poses,
+                 options.shared_partition)
     if len(tracks) > MAX_ID:  # checked before anything is written
         raise SceneError(
             f"{render_dir}: {len(tracks)} instance tracks over {len(ids)} frames, more than the "
@@ -221,7 +256,8 @@ def segment_and_track(render_dir, poses_json, out_dir, options: SegmentOptions |
             rgb = read_frame(files[(p, t, i)])[0]
             write_image(out_dir / "overlay" / p / t / f"{i:05d}.jpg", _overlay(rgb, m))
         index["frames"].append({"path": p, "t": t, "frame": i, "ids": rel,
-                                "render": os.path.relpath(files[(p, t, i)], out_dir)})
+                                "render": os.path.relpath(files[(p, t, i)], out_dir),
+                                "shared": (p, t, i) in shared})
     write_csv(out_dir / "tracks.csv", tracks)
     write_json(out_dir / "index.json", index)
-    return {"frames": len(ids), "tracks": len(tracks)}
+    return {"frames": len(ids), "tracks": len(tracks), "shared_poses": n_shared}

@@ -116,10 +116,11 @@ class SegmentOptions:
     smooth_sigma: Gaussian blur (pixels, at the working resolution) before edge detection.
     max_side: images are segmented at a resolution whose longer side is at most this many
         pixels; masks are returned at full resolution.
-    shared_partition: segment the two times of a pose together (the union of their edges where
-        they look alike, linked by appearance instead of depth; gdiff/segment/pair.py):
-        ``auto`` at the poses whose two rendered depths agree on less than half of the frame
-        (a sparse capture), ``always``, or ``never``.
+    shared_partition: segment the two times of a pose together (the union of their edges,
+        linked by appearance instead of depth; gdiff/segment/pair.py): ``auto`` at the poses
+        whose two rendered depths agree on less than half of the frame (a sparse capture),
+        ``always``, or ``never`` (the default: measured on the robot captures it cleans the
+        compare stage's masks but not the partition's maps, see docs/design.md).
 
     ``sam`` backend (gdiff/segment/sam_onnx.py)
     --------------------------------------------
@@ -144,7 +145,7 @@ class SegmentOptions:
     color_edge: float = 0.15
     smooth_sigma: float = 1.0
     max_side: int = 640
-    shared_partition: str = "auto"
+    shared_partition: str = "never"
     # sam
     sam_encoder: str | None = None
     sam_decoder: str | None = None

@@ -138,7 +138,12 @@ def normalised_chroma(rgb: np.ndarray, linear: np.ndarray | None = None
     ``rgb`` (sRGB [H, W, 3]); ``linear`` (optional): its linear values as float64, when the
     caller has them (:func:`linear_rgb`)."""
     lin = linear_rgb(rgb) if linear is None else linear
-    lin = lin / np.maximum(lin.reshape(-1, 3).mean(0), 1e-6)  # global colour cast removed
+    return _chroma_of(lin / np.maximum(lin.reshape(-1, 3).mean(0), 1e-6))  # cast removed
+
+
+def _chroma_of(lin: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Chromaticity [H, W, 3] (sums to 1) of linear colours ``lin`` [H, W, 3] and its
+    confidence [H, W] in [0, 1] (0 for dark pixels)."""
     s = lin.sum(-1)
     return lin / np.maximum(s, 1e-6)[..., None], np.clip(s / 0.15, 0, 1)
 
@@ -192,8 +197,4 @@ def matched_chroma(rgb0: np.ndarray, rgb1: np.ndarray
     lit = (lin0.sum(-1) > 0.05) & (lin1.sum(-1) > 0.05)
     if lit.any():
         lin0 = lin0 * np.median(lin1[lit] / np.maximum(lin0[lit], 1e-6), axis=0)
-    out = []
-    for lin in (lin0, lin1):
-        s = lin.sum(-1)
-        out.append((lin / np.maximum(s, 1e-6)[..., None], np.clip(s / 0.15, 0, 1)))
-    return out[0], out[1]
+    return _chroma_of(lin0), _chroma_of(lin1)

@@ -374,7 +374,6 @@ def track_sequence(frames: list[TrackFrame], options: TrackOptions | None = None
     areas: dict[int, int] = {}
     done_by_pose: dict[Hashable, int] = {}
     grads: dict[int, Texture] = {}
-    chromas: dict[tuple[int, int], tuple] = {}  # (source, frame) -> their matched_chroma
     positions: dict[int, dict[float, list]] = {}  # track -> time -> [(median point, size)]
     n_broken = 0
 
@@ -382,11 +381,6 @@ def track_sequence(frames: list[TrackFrame], options: TrackOptions | None = None
         if k not in grads:
             grads[k] = image_texture(frames[k].rgb, o.min_texture)
         return grads[k]
-
-    def chroma(f: int, k: int) -> tuple:
-        if (f, k) not in chromas:
-            chromas[(f, k)] = matched_chroma(frames[f].rgb, frames[k].rgb)
-        return chromas[(f, k)]
 
     for k, fr in enumerate(progress(frames, desc="track", total=len(frames))):
         labels = np.asarray(fr.labels)
@@ -419,6 +413,7 @@ def track_sequence(frames: list[TrackFrame], options: TrackOptions | None = None
             colour = shared and o.link_min_color_similarity > 0 and src.rgb is not None \
                 and fr.rgb is not None
             pred = ids_src.astype(np.int32) if shared else propagate(ids_src, src, fr, o)
+            chroma = None  # the pair's matched_chroma, once per source, when a link needs it
             tids, sids, iou = _iou_table(pred, (seg_sids, seg_index))
             for a, b in zip(*np.nonzero(iou > 0)):
                 t, s = tids[a], sids[b]
@@ -432,14 +427,14 @@ def track_sequence(frames: list[TrackFrame], options: TrackOptions | None = None
                                   "(texture similarity %.2f)", fr.name, t, s, sim)
                         continue
                     if colour:
-                        c0, c1 = chroma(f, k)
-                        h0, h1 = chroma_hist(c0, both), chroma_hist(c1, both)
-                        if h0.sum() and h1.sum() and \
-                                bhattacharyya(h0, h1) < o.link_min_color_similarity:
+                        if chroma is None:
+                            chroma = matched_chroma(src.rgb, fr.rgb)
+                        h0, h1 = chroma_hist(chroma[0], both), chroma_hist(chroma[1], both)
+                        csim = bhattacharyya(h0, h1) if h0.sum() and h1.sum() else 1.0
+                        if csim < o.link_min_color_similarity:  # too dark: keeps the link
                             n_broken += 1
                             log.debug("frame %s: link of track %d to segment %d broken "
-                                      "(colour similarity %.2f)", fr.name, t, s,
-                                      bhattacharyya(h0, h1))
+                                      "(colour similarity %.2f)", fr.name, t, s, csim)
                             continue
                 key = (int(t), int(s))
                 best[key] = max(best.get(key, 0.0), float(iou[a, b]))
@@ -481,7 +476,6 @@ def track_sequence(frames: list[TrackFrame], options: TrackOptions | None = None
         # window (also those of same-pose partners far back) are dropped
         for j in [j for j in grads if j <= k - 2 * (o.max_missed + 2)]:
             del grads[j]
-        chromas.clear()  # only the pairs linked into this frame were needed
         if o.merge_3d and fr.depth is not None and fr.camera is not None and fr.time is not None:
             for t, rec in frame_positions(ids, fr).items():
                 positions.setdefault(t, {}).setdefault(float(fr.time), []).append(rec)

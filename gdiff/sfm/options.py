@@ -107,6 +107,13 @@ class PosesOptions:
             (:mod:`gdiff.sfm.refine_known`). Off =
             the poses are used as given (exact poses of a rendered scene, a motion-capture
             rig).
+        turn_baseline: how an image that no triangulated points tie to the others is turned to
+            agree with a photo from the same place (:func:`gdiff.sfm.refine_known.best_turn`):
+            ``given`` fits the turn with the given baseline between the two held; ``refined``
+            fits the baseline's direction with it (its length and the given centre kept).
+            With the baseline held, centres a few centimetres off let the turn slide degrees
+            off along the epipolar lines; ``refined`` gives the turn the photos show, but the
+            change maps of the robot captures measured no better with it (see design.md).
         known_max_error: how far off the given poses may be, as a reprojection error in
             fractions of the longer image side: the first triangulation accepts this much,
             then the threshold halves each round of the refinement down to
@@ -153,6 +160,7 @@ class PosesOptions:
     seed_min_empty: float = 0.5
     seed_sweep_extra: int = 3
     refine_known: bool = True
+    turn_baseline: str = "given"
     known_max_error: float = 0.03
     max_unregistered_fraction: float = 0.2
     num_threads: int = -1
@@ -188,6 +196,9 @@ class PosesOptions:
             raise ValueError("resample_max_side must be >= 0 (pixels; 0 = no cap)")
         if self.map_max_images is not None and self.map_max_images < 10:
             raise ValueError("map_max_images must be >= 10 (or null: map all images)")
+        if self.turn_baseline not in ("given", "refined"):
+            raise ValueError(f"turn_baseline must be given or refined, not "
+                             f"{self.turn_baseline!r}")
         if not 0.0 < self.known_max_error <= 0.5:
             raise ValueError("known_max_error must lie in (0, 0.5] (fraction of the longer "
                              "image side)")

@@ -13,12 +13,13 @@ viewing directions), so world frame and scale stay the user's.
 An image that too few triangulated points tie to the others (a view no other waypoint
 shares) often shares many matches with the photo of the same waypoint on the other visit: two
 photos from about one place, too close for triangulation, but their matches give the rotation
-between them, the given baseline held (:func:`best_turn`). Such an image is turned to agree
-with that photo and moved with it. Of a pair of which neither is tied, the before photo keeps
-its given centre and takes the correction all refined photos share (their mean turn: a camera
-mounted a few degrees off turns every pose alike), and the after photo is turned to agree with
-it. A robot's other pose errors differ from waypoint to waypoint (the localisation at each
-stop), so a neighbouring waypoint's own correction does not carry over.
+between them (:func:`best_turn`; with ``poses.turn_baseline: refined`` the baseline's
+direction is refined with it, its length and the centres kept as given). Such an image is turned to agree with that photo and moved with
+it. Of a pair of which neither is tied, the before photo keeps its given centre and takes the
+correction all refined photos share (their mean turn: a camera mounted a few degrees off turns
+every pose alike), and the after photo is turned to agree with it. A robot's other pose errors
+differ from waypoint to waypoint (the localisation at each stop), so a neighbouring waypoint's
+own correction does not carry over.
 
 Conventions: ``Camera.c2w`` is camera-to-world (OpenCV axes: x right, y down, z forward);
 pycolmap images hold world-to-camera (``cam_from_world``).
@@ -173,24 +174,78 @@ def epipolar_errors(xy1: np.ndarray, xy2: np.ndarray, K1: np.ndarray, K2: np.nda
                                     + f2[:, 1] ** 2, 1e-300))
 
 
+def _across(t: np.ndarray) -> np.ndarray:
+    """Two unit vectors [2, 3] orthogonal to ``t`` [3] and to each other."""
+    u = t / np.linalg.norm(t)
+    a = np.cross(u, np.eye(3)[int(np.argmin(np.abs(u)))])
+    a /= np.linalg.norm(a)
+    return np.stack([a, np.cross(u, a)])
+
+
+def _refine_turn(xy1: np.ndarray, xy2: np.ndarray, K1: np.ndarray, K2: np.ndarray,
+                 M: np.ndarray, t: np.ndarray, threshold: float, free_baseline: bool
+                 ) -> tuple[np.ndarray, np.ndarray]:
+    """The rotation ``M`` [3, 3] and baseline ``t`` [3] that fit the matches best (Cauchy loss
+    on :func:`epipolar_errors`, scale a quarter of ``threshold``: false matches barely pull),
+    starting from the given ones: the rotation alone, or with ``free_baseline`` the rotation
+    and the baseline's direction together, its length held (the matches cannot see it). With
+    no baseline (``t`` ~ 0) only the rotation is refined."""
+    from scipy.optimize import least_squares
+    from scipy.spatial.transform import Rotation
+
+    length = float(np.linalg.norm(t))
+    free = free_baseline and length > 1e-12
+    across = _across(t) if free else None
+
+    def pose(v):
+        if not free:
+            return Rotation.from_rotvec(v).as_matrix() @ M, t
+        d = t / length + v[3:] @ across
+        return Rotation.from_rotvec(v[:3]).as_matrix() @ M, length * d / np.linalg.norm(d)
+
+    fit = least_squares(lambda v: epipolar_errors(xy1, xy2, K1, K2, *pose(v)),
+                        np.zeros(5 if free else 3), loss="cauchy", f_scale=0.25 * threshold)
+    return pose(fit.x)
+
+
 def best_turn(xy1: np.ndarray, xy2: np.ndarray, K1: np.ndarray, K2: np.ndarray,
-              M0: np.ndarray, t: np.ndarray, threshold: float
+              M0: np.ndarray, t: np.ndarray, threshold: float, free_baseline: bool = False
               ) -> tuple[np.ndarray, int, str]:
     """The rotation ``M = R2^T R1`` between two photos that their matches (pixels [M, 2])
-    support best, with the camera-1 centre at ``t`` in camera 2's axes (the given baseline,
-    ``X2 = M X1 + t``): the given one ``M0``, the pure rotation of their homography
-    (:func:`turn_between`: photos from one place) or the rotation of their essential matrix
+    support best, with the camera-1 centre at ``t`` in camera 2's axes as given (``X2 = M X1
+    + t``).
+
+    The starts are the given rotation ``M0``, the pure rotation of their homography
+    (:func:`turn_between`: photos from one place) and the rotation of their essential matrix
     (photos a few centimetres apart at close range, where a homography leaves parallax
-    unexplained). The one with the most matches within ``threshold`` pixels
-    (:func:`epipolar_errors`) wins, ties to the lower median, and the given one on equal
-    terms; it is then refined to the rotation whose errors over all matches are least (robust
-    soft-L1 loss, the baseline held). Returns ``(M, inliers, "given" | "homography" |
-    "essential")``: the start it was refined from."""
+    unexplained).
+
+    - ``free_baseline`` False (``poses.turn_baseline: given``): the start with the most
+      matches within ``threshold`` pixels (:func:`epipolar_errors`) under the given baseline
+      wins, ties to the lower median, and the given one on equal terms; it is then refined to
+      the rotation whose errors over all matches are least (robust soft-L1 loss, the baseline
+      held). When the given centres are a few centimetres off, the turn about the axis across
+      the baseline slides along the epipolar lines, which it barely changes, to where the
+      baseline's own error is absorbed: it can end degrees off.
+    - ``free_baseline`` True (``refined``): each start is refined together with the baseline's
+      direction, its length held (:func:`_refine_turn`), and the one with the most matches
+      within ``threshold`` under its own refined baseline wins (ties as above). Only the
+      rotation is returned; the caller keeps the given centre (a short baseline's direction is
+      what the matches fix least). The count returned is still the support of the given
+      baseline (the most matches any start explains with it held and the turn alone
+      refined): it decides whether, and to which photo, an image is turned
+      (:func:`_place_untied`), and a three-parameter fit keeps a pair of a handful of matches
+      from passing by the freedom of the baseline's direction.
+
+    Returns ``(M, inliers, "given" | "homography" | "essential")``: the start it was refined
+    from."""
     from scipy.optimize import least_squares
     from scipy.spatial.transform import Rotation
 
     found = [("given", M0), ("homography", turn_between(xy1, xy2, K1, K2, threshold)[0]),
              ("essential", _essential_turn(xy1, xy2, K1, K2, threshold))]
+    if free_baseline:
+        return _best_free_turn(xy1, xy2, K1, K2, found, t, threshold)
     best = None
     for how, M in found:
         if M is None:
@@ -209,6 +264,26 @@ def best_turn(xy1: np.ndarray, xy2: np.ndarray, K1: np.ndarray, K2: np.ndarray,
     return M, n, how
 
 
+def _best_free_turn(xy1: np.ndarray, xy2: np.ndarray, K1: np.ndarray, K2: np.ndarray,
+                    found: list, t: np.ndarray, threshold: float
+                    ) -> tuple[np.ndarray, int, str]:
+    """:func:`best_turn` with ``free_baseline``: ``found`` the ``(how, M or None)`` starts."""
+    best, support = None, 0
+    for how, M in found:
+        if M is None:
+            continue
+        held, free = (M, t), (M, t)
+        if len(xy1) >= 5:
+            held = _refine_turn(xy1, xy2, K1, K2, M, t, threshold, free_baseline=False)
+            free = _refine_turn(xy1, xy2, K1, K2, M, t, threshold, free_baseline=True)
+        support = max(support, int((epipolar_errors(xy1, xy2, K1, K2, *held) < threshold).sum()))
+        e = epipolar_errors(xy1, xy2, K1, K2, *free)
+        key = (int((e < threshold).sum()), -float(np.median(e)))
+        if best is None or key > best[0]:
+            best = (key, free[0], how)
+    return best[1], support, best[2]
+
+
 def common_turn(before: list[np.ndarray], after: list[np.ndarray]) -> np.ndarray:
     """The mean (scipy's chordal L2 mean) of the world-frame rotations ``R_after R_before^T``
     [3, 3] that took each camera-to-world pose of ``before`` to the same camera's ``after``:
@@ -222,12 +297,14 @@ def common_turn(before: list[np.ndarray], after: list[np.ndarray]) -> np.ndarray
 
 def _place_untied(loose: list[str], placed: dict[str, np.ndarray], cams: dict[str, Camera],
                   matches, min_matches: int, threshold: float,
-                  turn: np.ndarray | None = None) -> tuple[dict, dict, list]:
+                  turn: np.ndarray | None = None, free_baseline: bool = False
+                  ) -> tuple[dict, dict, list]:
     """Poses for the images bundle adjustment could not tie to the others (camera-to-world
     [4, 4], in ``placed``'s frame): each is turned to agree with the placed image whose matches
     support a turn best (at least ``min_matches`` of them, :func:`best_turn`: an image that
     shares matches but no triangulated points was taken from about the same place, e.g. the
-    same waypoint on the other visit; the given turn may win) and moved with it. Images that share
+    same waypoint on the other visit; the given turn may win; ``free_baseline``: see
+    :func:`best_turn`) and moved with it. Images that share
     matches only with other untied ones: the first (capture order, before first) keeps its
     given centre, turned about it by ``turn`` [3, 3] (world frame; the correction the refined
     images share, :func:`common_turn`; None: not turned), and the others are turned to agree
@@ -248,7 +325,7 @@ def _place_untied(loose: list[str], placed: dict[str, np.ndarray], cams: dict[st
                     Ru, Rp = cams[u].c2w[:3, :3], cams[p].c2w[:3, :3]
                     t = Rp.T @ (cams[u].center - cams[p].center)  # u's centre in p's axes
                     scored[(u, p)] = best_turn(*matches[(u, p)], cams[u].K, cams[p].K,
-                                               Rp.T @ Ru, t, threshold)
+                                               Rp.T @ Ru, t, threshold, free_baseline)
                 M, k, how = scored[(u, p)]
                 if k >= min_matches and (best is None or k > best[2]):
                     best = (u, p, k, M, how)
@@ -325,7 +402,8 @@ def refine_known_poses(rec, db: Path, root: Path, work: Path, cams: dict[str, Ca
         opts: ``known_max_error`` (the error the given poses may cause, as a fraction of the
             longer image side: the first triangulation's threshold), ``max_reproj_error``
             (the final one, extraction pixels), ``min_num_matches`` (points an image needs to
-            be refined).
+            be refined), ``turn_baseline`` (how an untied image's turn is fitted,
+            :func:`best_turn`).
         scale: full-resolution pixels per extraction pixel.
 
     Returns:
@@ -371,7 +449,8 @@ def refine_known_poses(rec, db: Path, root: Path, work: Path, cams: dict[str, Ca
         turn = common_turn([given[n] for n in refined], [new[n] for n in refined])
         if loose:  # turned to agree with a photo from the same place (see module)
             poses, info["paired"], info["anchored"] = _place_untied(
-                loose, new, cams, _pair_matches(db), opts.min_num_matches, strict, turn)
+                loose, new, cams, _pair_matches(db), opts.min_num_matches, strict, turn,
+                free_baseline=opts.turn_baseline == "refined")
             for n, c2w in poses.items():
                 new[n] = c2w
                 _set_pose(rec, by_name[n], c2w)

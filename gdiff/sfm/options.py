@@ -7,6 +7,7 @@ from dataclasses import dataclass
 
 MATCHERS = ("auto", "exhaustive", "retrieval", "sequential")
 CAMERA_MODELS = ("PINHOLE", "SIMPLE_PINHOLE", "SIMPLE_RADIAL", "RADIAL", "OPENCV")
+TURN_BASELINES = ("given", "refined")
 
 
 @dataclass
@@ -196,8 +197,8 @@ class PosesOptions:
             raise ValueError("resample_max_side must be >= 0 (pixels; 0 = no cap)")
         if self.map_max_images is not None and self.map_max_images < 10:
             raise ValueError("map_max_images must be >= 10 (or null: map all images)")
-        if self.turn_baseline not in ("given", "refined"):
-            raise ValueError(f"turn_baseline must be given or refined, not "
+        if self.turn_baseline not in TURN_BASELINES:
+            raise ValueError(f"turn_baseline must be one of {', '.join(TURN_BASELINES)}, not "
                              f"{self.turn_baseline!r}")
         if not 0.0 < self.known_max_error <= 0.5:
             raise ValueError("known_max_error must lie in (0, 0.5] (fraction of the longer "

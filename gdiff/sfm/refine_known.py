@@ -14,12 +14,12 @@ An image that too few triangulated points tie to the others (a view no other way
 shares) often shares many matches with the photo of the same waypoint on the other visit: two
 photos from about one place, too close for triangulation, but their matches give the rotation
 between them (:func:`best_turn`; with ``poses.turn_baseline: refined`` the baseline's
-direction is refined with it, its length and the centres kept as given). Such an image is turned to agree with that photo and moved with
-it. Of a pair of which neither is tied, the before photo keeps its given centre and takes the
-correction all refined photos share (their mean turn: a camera mounted a few degrees off turns
-every pose alike), and the after photo is turned to agree with it. A robot's other pose errors
-differ from waypoint to waypoint (the localisation at each stop), so a neighbouring waypoint's
-own correction does not carry over.
+direction is refined with it, its length and the centres kept as given). Such an image is
+turned to agree with that photo and moved with it. Of a pair of which neither is tied, the
+before photo keeps its given centre and takes the correction all refined photos share (their
+mean turn: a camera mounted a few degrees off turns every pose alike), and the after photo is
+turned to agree with it. A robot's other pose errors differ from waypoint to waypoint (the
+localisation at each stop), so a neighbouring waypoint's own correction does not carry over.
 
 Conventions: ``Camera.c2w`` is camera-to-world (OpenCV axes: x right, y down, z forward);
 pycolmap images hold world-to-camera (``cam_from_world``).
@@ -183,18 +183,18 @@ def _across(t: np.ndarray) -> np.ndarray:
 
 
 def _refine_turn(xy1: np.ndarray, xy2: np.ndarray, K1: np.ndarray, K2: np.ndarray,
-                 M: np.ndarray, t: np.ndarray, threshold: float, free_baseline: bool
+                 M: np.ndarray, t: np.ndarray, threshold: float
                  ) -> tuple[np.ndarray, np.ndarray]:
-    """The rotation ``M`` [3, 3] and baseline ``t`` [3] that fit the matches best (Cauchy loss
-    on :func:`epipolar_errors`, scale a quarter of ``threshold``: false matches barely pull),
-    starting from the given ones: the rotation alone, or with ``free_baseline`` the rotation
-    and the baseline's direction together, its length held (the matches cannot see it). With
-    no baseline (``t`` ~ 0) only the rotation is refined."""
+    """The rotation ``M`` [3, 3] and the baseline ``t`` [3] whose direction, refined together
+    with it (its length held: the matches cannot see it), fits the matches best (Cauchy loss on
+    :func:`epipolar_errors`, scale a quarter of ``threshold``: false matches barely pull),
+    starting from the given ones. With no baseline (``t`` ~ 0) only the rotation is
+    refined."""
     from scipy.optimize import least_squares
     from scipy.spatial.transform import Rotation
 
     length = float(np.linalg.norm(t))
-    free = free_baseline and length > 1e-12
+    free = length > 1e-12
     across = _across(t) if free else None
 
     def pose(v):
@@ -218,34 +218,28 @@ def best_turn(xy1: np.ndarray, xy2: np.ndarray, K1: np.ndarray, K2: np.ndarray,
     The starts are the given rotation ``M0``, the pure rotation of their homography
     (:func:`turn_between`: photos from one place) and the rotation of their essential matrix
     (photos a few centimetres apart at close range, where a homography leaves parallax
-    unexplained).
+    unexplained). The start with the most matches within ``threshold`` pixels
+    (:func:`epipolar_errors`) under the given baseline wins, ties to the lower median, and the
+    given one on equal terms; it is then refined to the rotation whose errors over all matches
+    are least (robust soft-L1 loss, the baseline held). The count of matches it then explains,
+    the support of the given baseline, is what decides whether, and to which photo, an image
+    is turned (:func:`_place_untied`), with either setting below.
 
-    - ``free_baseline`` False (``poses.turn_baseline: given``): the start with the most
-      matches within ``threshold`` pixels (:func:`epipolar_errors`) under the given baseline
-      wins, ties to the lower median, and the given one on equal terms; it is then refined to
-      the rotation whose errors over all matches are least (robust soft-L1 loss, the baseline
-      held). When the given centres are a few centimetres off, the turn about the axis across
-      the baseline slides along the epipolar lines, which it barely changes, to where the
-      baseline's own error is absorbed: it can end degrees off.
-    - ``free_baseline`` True (``refined``): each start is refined together with the baseline's
-      direction, its length held (:func:`_refine_turn`), and the one with the most matches
-      within ``threshold`` under its own refined baseline wins (ties as above). Only the
-      rotation is returned; the caller keeps the given centre (a short baseline's direction is
-      what the matches fix least). The count returned is still the support of the given
-      baseline (the most matches any start explains with it held and the turn alone
-      refined): it decides whether, and to which photo, an image is turned
-      (:func:`_place_untied`), and a three-parameter fit keeps a pair of a handful of matches
-      from passing by the freedom of the baseline's direction.
+    With the baseline held, centres a few centimetres off let the turn about the axis across
+    it slide along the epipolar lines, which it barely changes, to where the baseline's own
+    error is absorbed: it can end degrees off. With ``free_baseline``
+    (``poses.turn_baseline: refined``) the rotation returned is instead that of
+    :func:`_free_turn` (the baseline's direction fitted with it), and the start it came from.
+    The count stays the held fit's: three parameters, so that a pair of a handful of matches
+    does not pass by the freedom of the baseline's direction.
 
-    Returns ``(M, inliers, "given" | "homography" | "essential")``: the start it was refined
-    from."""
+    Returns ``(M, support, "given" | "homography" | "essential")``: the start the rotation was
+    refined from."""
     from scipy.optimize import least_squares
     from scipy.spatial.transform import Rotation
 
     found = [("given", M0), ("homography", turn_between(xy1, xy2, K1, K2, threshold)[0]),
              ("essential", _essential_turn(xy1, xy2, K1, K2, threshold))]
-    if free_baseline:
-        return _best_free_turn(xy1, xy2, K1, K2, found, t, threshold)
     best = None
     for how, M in found:
         if M is None:
@@ -261,27 +255,29 @@ def best_turn(xy1: np.ndarray, xy2: np.ndarray, K1: np.ndarray, K2: np.ndarray,
             loss="soft_l1", f_scale=0.5 * threshold)
         M = Rotation.from_rotvec(fit.x).as_matrix() @ M
         n = int((epipolar_errors(xy1, xy2, K1, K2, M, t) < threshold).sum())
+    if free_baseline and len(xy1) >= 5:
+        M, how = _free_turn(xy1, xy2, K1, K2, found, t, threshold)
     return M, n, how
 
 
-def _best_free_turn(xy1: np.ndarray, xy2: np.ndarray, K1: np.ndarray, K2: np.ndarray,
-                    found: list, t: np.ndarray, threshold: float
-                    ) -> tuple[np.ndarray, int, str]:
-    """:func:`best_turn` with ``free_baseline``: ``found`` the ``(how, M or None)`` starts."""
-    best, support = None, 0
+def _free_turn(xy1: np.ndarray, xy2: np.ndarray, K1: np.ndarray, K2: np.ndarray,
+               found: list, t: np.ndarray, threshold: float) -> tuple[np.ndarray, str]:
+    """The rotation of :func:`best_turn`'s ``free_baseline``: each start of ``found`` (``(how,
+    M or None)``) refined together with the baseline's direction (:func:`_refine_turn`); the
+    one with the most matches within ``threshold`` under its own refined baseline wins, ties
+    to the lower median, and the earlier start on equal terms. Only the rotation is returned
+    (with its start): the caller keeps the given centre, since a short baseline's direction is
+    what the matches fix least."""
+    best = None
     for how, M in found:
         if M is None:
             continue
-        held, free = (M, t), (M, t)
-        if len(xy1) >= 5:
-            held = _refine_turn(xy1, xy2, K1, K2, M, t, threshold, free_baseline=False)
-            free = _refine_turn(xy1, xy2, K1, K2, M, t, threshold, free_baseline=True)
-        support = max(support, int((epipolar_errors(xy1, xy2, K1, K2, *held) < threshold).sum()))
-        e = epipolar_errors(xy1, xy2, K1, K2, *free)
+        R, tt = _refine_turn(xy1, xy2, K1, K2, M, t, threshold)
+        e = epipolar_errors(xy1, xy2, K1, K2, R, tt)
         key = (int((e < threshold).sum()), -float(np.median(e)))
         if best is None or key > best[0]:
-            best = (key, free[0], how)
-    return best[1], support, best[2]
+            best = (key, R, how)
+    return best[1], best[2]
 
 
 def common_turn(before: list[np.ndarray], after: list[np.ndarray]) -> np.ndarray:

@@ -212,7 +212,7 @@ def test_stage_files(demo_paths, tmp_path, monkeypatch):
     cand = pd.read_csv(res / "change" / "candidates.csv")
     assert list(cand.columns) == ["instance", "ids", "types", "n_t0", "n_t1", "n_confirmed",
                                   "area", "x", "y", "z", "size", "support", "colour", "photo",
-                                  "photo_other", "photo_points", "verdict"]
+                                  "photo_other", "photo_points", "own_px", "verdict"]
     assert {"x", "y", "z", "size"} <= set(ch.columns)
     kept = cand[cand["verdict"] != "dropped"]
     assert set(kept["instance"]) == set(ch["instance"])
@@ -1381,6 +1381,47 @@ def test_colour_is_not_believed_where_the_photos_of_both_visits_show_the_same_po
     for kw in (dict(confirm_colour_points=0.0), dict(light_changed=True)):
         cand = judged(False, **kw)
         assert (cand["verdict"] == "kept: colour").all(), kw
+
+
+def test_colour_is_not_believed_for_an_object_only_the_other_visits_poses_show():
+    """Four key poses, two per visit. A box added between the visits shows in the after
+    render at the after visit's poses (its own time's: the after photos were taken there), and
+    so does a box removed in the before render at the before visit's poses. A smear of the
+    before model, seen from the after visit's poses only (none of the before photos was taken
+    there), shows in the before render at those poses and nowhere at its own time's poses. All
+    three changed colour against their surroundings; the smear is dropped, the boxes are kept.
+    Pixels no photo of one of the times shows do not count for its own time's view. Its change
+    in 3D still keeps it, and with the test off its colour does."""
+    H, W = 40, 60
+    keys = {("p1", 0): 0, ("p1", 1): 0, ("p1", 2): 1, ("p1", 3): 1}
+    maps = {(p, t, i): np.ones((H, W), np.int32) for (p, i) in keys for t in ("t0", "t1")}
+    for i in (2, 3):  # after poses
+        maps[("p1", "t1", i)][10:20, 10:20] = 2  # the added box, its own time's render
+        maps[("p1", "t0", i)][25:35, 30:50] = 4  # the before model's smear from there
+    for i in (0, 1):  # before poses
+        maps[("p1", "t0", i)][10:20, 40:55] = 3  # the removed box, its own time's render
+    maps[("p1", "t0", 1)][0:4, 0:10] = 4  # the smear's ID at a before pose, ...
+    shown = {k: np.ones((H, W), bool) for k in keys}
+    shown[("p1", 1)][0:4, 0:10] = False  # ... where no after photo shows the surface
+
+    def judged(support=0.0, **kw):
+        o = CompareOptions(**kw)
+        df = pd.DataFrame(dict(id=[1, 2, 3, 4], changed=[False, True, True, True],
+                               type=["", "added", "removed", "removed"], instance=[0, 2, 3, 4],
+                               colour=[np.nan, 0.6, 0.6, 0.6], n_colour=[0, 1, 1, 1],
+                               n_t0=[4, 0, 2, 2], n_t1=[4, 2, 0, 0], n_confirmed=[0, 2, 2, 2],
+                               area=[1.0, 100, 150, 200], support=[np.nan, 0.0, 0.0, support],
+                               **{c: [0.0] * 4 for c in ("x", "y", "z", "size")}))
+        cmp_stage._own_view(df, maps, keys, shown)
+        cmp_stage._confirm_by_evidence(df, o, 8)
+        return df.attrs["candidates"].set_index("instance")
+
+    cand = judged()
+    assert list(cand["own_px"]) == [200, 300, 0]
+    assert list(cand["verdict"]) == ["kept: colour", "kept: colour", "dropped"]
+    assert judged(support=0.9).at[4, "verdict"] == "kept: 3D"
+    assert judged(confirm_colour_own_view=False).at[4, "verdict"] == "kept: colour"
+    assert judged(min_area=250).at[2, "verdict"] == "dropped"  # 200 px: too few
 
 
 def _counter_shot(x: float, size: tuple[int, int, float], grain: np.ndarray, cells: float,

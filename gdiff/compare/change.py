@@ -171,6 +171,14 @@ class CompareOptions:
         :func:`gdiff.compare.stage._photo_points`): the rendered colours of the other time at
         a pose its photos did not see are a guess, the photos are not. Not when the light
         changed. 0: off.
+    confirm_colour_own_view: an object kept by its colour alone (``confirm_colour``) must show
+        at the key poses of its own time (where that time's photos were taken, so its render
+        there reproduces a photo) on at least ``min_area`` pixels a photo of each time shows
+        (``own_px`` of the changes table, :func:`gdiff.compare.stage._own_view`). An object of
+        one time that shows only from the other visit's poses is that time's model seen from
+        where none of its photos was taken: on a sparse capture such a render is blurred or
+        doubled, and its colour relative to its surroundings differs from the other time's by
+        chance. Its shape (``confirm_support``) still counts. False: off.
     surround_width: width of the ring around a region whose mean colour stands for the local
         light in :func:`surround_colour_change`, as a fraction of the image's longer side.
     spread_vote: a changed object's surface is marked at every pose, also where the segmenter
@@ -226,6 +234,7 @@ class CompareOptions:
     confirm_colour: float = 0.25
     confirm_photo: float = 2.0
     confirm_colour_points: float = 0.2
+    confirm_colour_own_view: bool = True
     surround_width: float = 0.05
     spread_vote: float = 0.3
     complete_reach: float = 1.0

@@ -258,11 +258,12 @@ def compare_paths(ids: dict[Key, np.ndarray], frames: dict[Key, dict] | None,
             _photo_support(df, ids, keys, diffs, o.confirm_photo, o.min_area, shown)
         if o.confirm_colour_points > 0 and key_photos and not light_changed:
             _photo_points(df, ids, key_photos, o)
+        _own_view(df, ids, keys, shown)
         if o.confirm_support > 0:
             _confirm_by_evidence(df, o, band, light_changed)
     else:
         df["support"] = np.nan
-    for c in ("photo", "photo_other", "photo_points"):  # the same columns whatever was asked
+    for c in ("photo", "photo_other", "photo_points", "own_px"):  # the same columns always
         if c not in df:
             df[c] = np.nan
     _replaced(df, o)
@@ -610,6 +611,33 @@ def _photo_support(df: pd.DataFrame, ids: dict[Key, np.ndarray], keys: dict[tupl
     _pool_instances(df, "photo_other", total_o, above_o, min_px)
 
 
+def _own_view(df: pd.DataFrame, ids: dict[Key, np.ndarray], keys: dict[tuple[str, int], int],
+              shown: dict | None = None) -> None:
+    """Column ``own_px`` (in place): per changed object (an ``instance``, all its IDs
+    together), its pixels at the key poses of its own time: in the ID map of the time the key
+    frame's photo was taken at (an added object at the after visit's poses), where its render
+    reproduces a photo. ``shown[(path, i)]`` (optional, bool [H, W]): the pixels of the key pose
+    whose surface a photo of each time shows (:func:`gdiff.compare.coverage.observed`); only
+    those count. 0 for an object that shows only from the other visit's poses; NaN for
+    unchanged IDs."""
+    df["own_px"] = np.nan
+    if not len(df.index[df["changed"]]) or not keys:
+        return
+    total, _ = _id_counts(ids)
+    for (p, i), t in sorted(keys.items()):
+        m = ids.get((p, TIMES[int(t)], i))
+        if m is None:
+            continue
+        if shown is not None and (p, i) in shown and shown[(p, i)].shape == m.shape:
+            m = np.where(shown[(p, i)], m, 0)  # ID 0 is counted for no object
+        total += np.bincount(m.ravel(), minlength=len(total))
+    ch = df.index[df["changed"]]
+    inst = df.loc[ch, "instance"].to_numpy()
+    for v in np.unique(inst):
+        members = df.loc[ch[inst == v], "id"].to_numpy(np.int64)
+        df.loc[ch[inst == v], "own_px"] = float(total[members].sum())
+
+
 def _photo_points(df: pd.DataFrame, ids: dict[Key, np.ndarray], key_photos: list[KeyPhoto],
                   o: CompareOptions) -> None:
     """Column ``photo_points`` (in place): per changed object (an ``instance``, all its IDs
@@ -643,13 +671,13 @@ def _photo_points(df: pd.DataFrame, ids: dict[Key, np.ndarray], key_photos: list
 
 CANDIDATE_COLUMNS = ["instance", "ids", "types", "n_t0", "n_t1", "n_confirmed", "area",
                      "x", "y", "z", "size", "support", "colour", "photo", "photo_other",
-                     "photo_points", "verdict"]
+                     "photo_points", "own_px", "verdict"]
 
 
 def _candidate_row(instance: int, members: pd.DataFrame, support: float, colour: float,
                    verdict: str, photo: float = float("nan"),
-                   photo_other: float = float("nan"), photo_points: float = float("nan")
-                   ) -> dict:
+                   photo_other: float = float("nan"), photo_points: float = float("nan"),
+                   own_px: float = float("nan")) -> dict:
     """One row of ``candidates.csv`` (:data:`CANDIDATE_COLUMNS`) for a changed object made of
     the table rows ``members``: its counts, area, place and size are its largest member's."""
     head = members.loc[members["area"].idxmax()]
@@ -658,7 +686,7 @@ def _candidate_row(instance: int, members: pd.DataFrame, support: float, colour:
                 n_t1=int(head["n_t1"]), n_confirmed=int(head["n_confirmed"]),
                 area=float(head["area"]), **{c: float(head[c]) for c in ("x", "y", "z", "size")},
                 support=support, colour=colour, photo=photo, photo_other=photo_other,
-                photo_points=photo_points, verdict=verdict)
+                photo_points=photo_points, own_px=own_px, verdict=verdict)
 
 
 def _confirm_by_evidence(df: pd.DataFrame, o: CompareOptions, band: int,
@@ -681,7 +709,9 @@ def _confirm_by_evidence(df: pd.DataFrame, o: CompareOptions, band: int,
     ``n_colour``): an object swapped for one of the same shape and size changes no depth, but
     its own colour, unless the photos of both visits show its surface points alike
     (``photo_points`` below ``o.confirm_colour_points``, :func:`_photo_points`): the other
-    time's rendered colours at a pose its photos did not see are a guess. With the light
+    time's rendered colours at a pose its photos did not see are a guess; nor when it shows at
+    no key pose of its own time (``own_px`` below ``o.min_area``, :func:`_own_view`;
+    ``o.confirm_colour_own_view``): then its own colours are that time's guess. With the light
     unchanged, it is also kept when the training photos show it
     changed both ways (``photo`` and ``photo_other``, :func:`_photo_support`, each at least
     one half; ``o.confirm_photo`` > 0) and the ID comparison confirmed it at two poses or more:
@@ -704,8 +734,9 @@ def _confirm_by_evidence(df: pd.DataFrame, o: CompareOptions, band: int,
     weight = df.loc[ch, "n_colour"].to_numpy(float)
     # per changed ID, its instance's photo shares (NaN where not measured)
     photo = df.reindex(columns=["photo", "photo_other", "photo_points"]).loc[ch].to_numpy(float)
+    own_px = df.reindex(columns=["own_px"]).loc[ch, "own_px"].to_numpy(float)
     by_photo = o.confirm_photo > 0 and not light_changed
-    drop, rows, n_alike = [], [], 0
+    drop, rows, n_alike, n_unseen = [], [], 0, 0
     for v in np.unique(inst):
         sel = inst == v
         support = float(df.loc[ch[sel], "support"].iloc[0])
@@ -714,14 +745,19 @@ def _confirm_by_evidence(df: pd.DataFrame, o: CompareOptions, band: int,
         pho, phx, pts = photo[sel][0]
         # its colour counts unless the photos of both visits show its points alike
         alike = o.confirm_colour_points > 0 and pts < o.confirm_colour_points
+        # ... and unless it shows only where its time's photos were not taken (NaN: not
+        # counted, it counts)
+        own = own_px[sel][0]
+        unseen = o.confirm_colour_own_view and own < o.min_area
         # the photo's word counts for an object confirmed at more than one pose: one pose's
         # render, against the photo next to it, may differ where the fit is poor
         several = int(df.loc[ch[sel], "n_confirmed"].max()) >= 2
         verdict = ("kept: 3D" if support >= o.confirm_support else
-                   "kept: colour" if col >= o.confirm_colour and not alike else
+                   "kept: colour" if col >= o.confirm_colour and not alike and not unseen else
                    "kept: photo" if by_photo and several and pho >= 0.5 and phx >= 0.5
                    else "dropped")
-        n_alike += verdict == "dropped" and col >= o.confirm_colour
+        n_alike += verdict == "dropped" and col >= o.confirm_colour and alike
+        n_unseen += verdict == "dropped" and col >= o.confirm_colour and unseen and not alike
         log.debug("instance %d: %.2f of its pixels near a change in 3D, colour change %.2f, "
                   "%.2f / %.2f shown changed by the photos of its own / the other time, %.2f of "
                   "its points by the other time's photos: %s", v, support, col, pho, phx, pts,
@@ -729,7 +765,7 @@ def _confirm_by_evidence(df: pd.DataFrame, o: CompareOptions, band: int,
         if verdict == "dropped":
             drop.extend(ch[sel])
         rows.append(_candidate_row(int(v), df.loc[ch[sel]], support, col, verdict, pho, phx,
-                                   pts))
+                                   pts, own))
     df.attrs["candidates"] = pd.DataFrame(rows, columns=CANDIDATE_COLUMNS)
     n = len(np.unique(inst))
     n_photo = sum(r["verdict"] == "kept: photo" for r in rows)
@@ -747,6 +783,11 @@ def _confirm_by_evidence(df: pd.DataFrame, o: CompareOptions, band: int,
         log.info("%d objects whose colour changed were dropped: fewer than %.0f %% of their "
                  "surface points look different in the photos of the other visit "
                  "(compare.confirm_colour_points)", n_alike, 100 * o.confirm_colour_points)
+    if n_unseen:
+        log.info("%d objects whose colour changed were dropped: they show at no key pose of "
+                 "their own time (on fewer than %d pixels), only in that time's render from the "
+                 "other visit's poses, where none of its photos was taken "
+                 "(compare.confirm_colour_own_view)", n_unseen, o.min_area)
     df.loc[drop, "changed"] = False
     df.loc[drop, "type"] = ""
     df.loc[drop, "instance"] = 0

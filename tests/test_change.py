@@ -1335,7 +1335,6 @@ def test_colour_is_not_believed_where_the_photos_of_both_visits_show_the_same_po
     after photo, no more differently than the rest of the wall: the patch is dropped, the box
     kept. A box that stood there at both visits is dropped too; with the test off, or under a
     change of light, the colours decide as before."""
-    from gdiff.compare.photos import KeyPhoto
 
     rng = np.random.default_rng(5)
 

@@ -8,7 +8,7 @@ import pytest
 from gdiff.cameras import look_at, load_cameras
 from gdiff.errors import ConfigError, SceneError
 from gdiff.importers import detect_format, import_scene, main
-from gdiff.io import read_mask, write_image, write_mask
+from gdiff.io import read_mask, write_image
 
 GL = np.diag([1.0, -1.0, -1.0, 1.0])
 

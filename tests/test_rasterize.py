@@ -12,7 +12,7 @@ import torch
 from gdiff.splat import rasterize as R
 from gdiff.splat.sh import eval_sh, num_sh_bases, sh_basis
 
-from reference_rasterizer import look_at_w2c, random_scene, render_dense
+from reference_rasterizer import random_scene, render_dense
 
 
 def _cpp_available():

@@ -24,7 +24,7 @@ produces overlapping proposals resolves them, higher score first); pixels covere
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Protocol, runtime_checkable
 
 import numpy as np

@@ -571,6 +571,15 @@ def _support_3d(df: pd.DataFrame, ids: dict[Key, np.ndarray], evidence: list[Geo
     _pool_instances(df, "support", total, near)
 
 
+def _shown_ids(ids: dict[Key, np.ndarray], key: Key, shown: dict | None) -> np.ndarray | None:
+    """The ID map ``ids[key]`` (``key`` = (path, time, frame) of a key pose) with 0 (counted
+    for no object) where ``shown[(path, frame)]`` (bool [H, W], optional) says no photo of one
+    of the times shows the surface; None when there is no such map."""
+    m = ids.get(key)
+    mask = None if m is None or shown is None else shown.get((key[0], key[2]))
+    return m if mask is None else np.where(mask, m, 0)
+
+
 def _photo_support(df: pd.DataFrame, ids: dict[Key, np.ndarray], keys: dict[tuple[str, int], int],
                    diffs: dict, margin: float, min_px: int, shown: dict | None = None) -> None:
     """Columns ``photo`` and ``photo_other`` (in place): per changed object (an ``instance``,
@@ -599,11 +608,9 @@ def _photo_support(df: pd.DataFrame, ids: dict[Key, np.ndarray], keys: dict[tupl
         t = int(keys[(p, i)])
         hit = (d > margin * floor).ravel()
         for k, (tot, ab) in ((t, (total, above)), (1 - t, (total_o, above_o))):
-            m = ids.get((p, TIMES[k], i))
+            m = _shown_ids(ids, (p, TIMES[k], i), shown)
             if m is None or m.shape != d.shape:
                 continue
-            if shown is not None and (p, i) in shown:
-                m = np.where(shown[(p, i)], m, 0)  # ID 0 is counted for no object
             m = m.ravel()
             tot += np.bincount(m, minlength=size)
             ab += np.bincount(m[hit], minlength=size)
@@ -625,12 +632,9 @@ def _own_view(df: pd.DataFrame, ids: dict[Key, np.ndarray], keys: dict[tuple[str
         return
     total, _ = _id_counts(ids)
     for (p, i), t in sorted(keys.items()):
-        m = ids.get((p, TIMES[int(t)], i))
-        if m is None:
-            continue
-        if shown is not None and (p, i) in shown and shown[(p, i)].shape == m.shape:
-            m = np.where(shown[(p, i)], m, 0)  # ID 0 is counted for no object
-        total += np.bincount(m.ravel(), minlength=len(total))
+        m = _shown_ids(ids, (p, TIMES[int(t)], i), shown)
+        if m is not None:
+            total += np.bincount(m.ravel(), minlength=len(total))
     ch = df.index[df["changed"]]
     inst = df.loc[ch, "instance"].to_numpy()
     for v in np.unique(inst):
@@ -732,9 +736,9 @@ def _confirm_by_evidence(df: pd.DataFrame, o: CompareOptions, band: int,
     inst = df.loc[ch, "instance"].to_numpy()
     colour = np.nan_to_num(df.loc[ch, "colour"].to_numpy(float))  # NaN only where n_colour 0
     weight = df.loc[ch, "n_colour"].to_numpy(float)
-    # per changed ID, its instance's photo shares (NaN where not measured)
-    photo = df.reindex(columns=["photo", "photo_other", "photo_points"]).loc[ch].to_numpy(float)
-    own_px = df.reindex(columns=["own_px"]).loc[ch, "own_px"].to_numpy(float)
+    # per changed ID, its instance's photo shares and own-view pixels (NaN where not measured)
+    photo = df.reindex(columns=["photo", "photo_other", "photo_points", "own_px"]
+                       ).loc[ch].to_numpy(float)
     by_photo = o.confirm_photo > 0 and not light_changed
     drop, rows, n_alike, n_unseen = [], [], 0, 0
     for v in np.unique(inst):
@@ -742,12 +746,11 @@ def _confirm_by_evidence(df: pd.DataFrame, o: CompareOptions, band: int,
         support = float(df.loc[ch[sel], "support"].iloc[0])
         w = weight[sel]
         col = float((colour[sel] * w).sum() / w.sum()) if w.sum() else np.nan
-        pho, phx, pts = photo[sel][0]
+        pho, phx, pts, own = photo[sel][0]
         # its colour counts unless the photos of both visits show its points alike
         alike = o.confirm_colour_points > 0 and pts < o.confirm_colour_points
         # ... and unless it shows only where its time's photos were not taken (NaN: not
         # counted, it counts)
-        own = own_px[sel][0]
         unseen = o.confirm_colour_own_view and own < o.min_area
         # the photo's word counts for an object confirmed at more than one pose: one pose's
         # render, against the photo next to it, may differ where the fit is poor

@@ -527,19 +527,22 @@ def _id_counts(ids: dict[Key, np.ndarray], n: int = 2) -> list[np.ndarray]:
     return [np.zeros(size, np.int64) for _ in range(n)]
 
 
+def _instance_sums(df: pd.DataFrame, counts: np.ndarray) -> pd.Series:
+    """Per changed row of ``df`` (indexed like it), the sum of ``counts`` (int, indexed by ID
+    value) over every ID of its ``instance``."""
+    ch = df.index[df["changed"]]
+    per_id = pd.Series(counts[df.loc[ch, "id"].to_numpy(np.int64)], index=ch)
+    return per_id.groupby(df.loc[ch, "instance"].to_numpy()).transform("sum")
+
+
 def _pool_instances(df: pd.DataFrame, column: str, total: np.ndarray, hits: np.ndarray,
                     min_px: int = 0) -> None:
     """Column ``column`` of the changed rows of ``df`` (in place): per ``instance``, the hits
     of all its IDs over their pixels (``total``, ``hits``: counts per ID value). Left as it is
     for an instance with fewer than ``min_px`` pixels (at least one counts as one)."""
-    ch = df.index[df["changed"]]
-    changed = df.loc[ch, "id"].to_numpy(np.int64)
-    inst = df.loc[ch, "instance"].to_numpy()
-    for v in np.unique(inst):
-        members = changed[inst == v]
-        n = int(total[members].sum())
-        if n >= min_px:
-            df.loc[ch[inst == v], column] = hits[members].sum() / max(n, 1)
+    n, h = _instance_sums(df, total), _instance_sums(df, hits)
+    ok = n >= min_px
+    df.loc[ok.index[ok], column] = h[ok] / np.maximum(n[ok], 1)
 
 
 def _support_3d(df: pd.DataFrame, ids: dict[Key, np.ndarray], evidence: list[GeometryEvidence],
@@ -630,16 +633,13 @@ def _own_view(df: pd.DataFrame, ids: dict[Key, np.ndarray], keys: dict[tuple[str
     df["own_px"] = np.nan
     if not len(df.index[df["changed"]]) or not keys:
         return
-    total, _ = _id_counts(ids)
+    (total,) = _id_counts(ids, 1)
     for (p, i), t in sorted(keys.items()):
         m = _shown_ids(ids, (p, TIMES[int(t)], i), shown)
         if m is not None:
             total += np.bincount(m.ravel(), minlength=len(total))
-    ch = df.index[df["changed"]]
-    inst = df.loc[ch, "instance"].to_numpy()
-    for v in np.unique(inst):
-        members = df.loc[ch[inst == v], "id"].to_numpy(np.int64)
-        df.loc[ch[inst == v], "own_px"] = float(total[members].sum())
+    own = _instance_sums(df, total)
+    df.loc[own.index, "own_px"] = own.astype(float)
 
 
 def _photo_points(df: pd.DataFrame, ids: dict[Key, np.ndarray], key_photos: list[KeyPhoto],

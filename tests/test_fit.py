@@ -21,7 +21,7 @@ from gdiff.splat.losses import psnr
 from gdiff.splat.model import load_model
 from gdiff.splat.ply import read_gaussians, write_points
 from gdiff.splat.render import render, render_main
-from gdiff.splat.train import FitOptions, fit_scene
+from gdiff.splat.train import FitOptions, affine_colour_match, fit_scene
 from gdiff.synth import build_scene, get_preset, make_scene
 
 SEED = 3
@@ -116,6 +116,21 @@ def test_fit_outputs_loss_falls_and_quality(scene, fitted):
     for t in (0, 1):
         assert s[f"psnr_t{t}"] > 18.5, s
     assert q["ssim"].min() > 0.5
+    # the other time's render at each photo: a guess where the times do not share Gaussians
+    # and wrong on the changed objects, so below the own time's, but a render of the scene
+    assert q["psnr_other_time"].notna().all()
+    assert q["psnr_other_time"].mean() < q["psnr"].mean()
+    assert q["psnr_other_time"].min() > 12.0
+    assert abs(s["psnr_other_time"] - q["psnr_other_time"].mean()) < 1e-6
+
+
+def test_affine_colour_match_undoes_an_exposure_and_white_balance():
+    g = torch.Generator().manual_seed(0)
+    pred = torch.rand(30, 40, 3, generator=g)
+    A = torch.tensor([[0.6, 0.05, 0.0], [0.0, 0.5, 0.1], [0.02, 0.0, 0.7]])
+    photo = pred @ A.T + torch.tensor([0.05, 0.1, 0.0])
+    assert torch.allclose(affine_colour_match(pred, photo), photo, atol=1e-5)
+    assert float((pred - photo).abs().mean()) > 0.1  # unmatched, the two differ
 
 
 def test_densification_changes_the_count(scene, fitted):
@@ -478,6 +493,9 @@ def test_time_change_weight_shares_gaussians_between_the_times(scene, fitted, tm
     assert c_shared < 0.5 * c_default, (c_shared, c_default)
     for k in ("psnr_t0", "psnr_t1"):
         assert summary[k] > fitted.summary[k] - 0.5, (k, summary[k], fitted.summary[k])
+    # sharing more, each time's render draws the other time's photos better
+    assert summary["psnr_other_time"] > fitted.summary["psnr_other_time"], (
+        summary["psnr_other_time"], fitted.summary["psnr_other_time"])
     log = pd.read_csv(tmp_path / "train_log.csv")
     assert "time_change" in log.columns and log["time_change"].notna().all()
     d_in, d_out, _ = _change_at_eval_views(scene, shared)

@@ -72,7 +72,8 @@ deformation's over the fine phase.
 
 Outputs in ``out_dir``: ``model.pt``, ``gaussians_t0.ply``, ``gaussians_t1.ply``,
 ``train_log.csv`` (iteration, phase, loss terms, PSNR of the step's image, #Gaussians,
-seconds), ``quality.csv`` (per training image: PSNR, SSIM at the working resolution) and
+seconds), ``quality.csv`` (per training image: PSNR, SSIM at the working resolution, and with
+both times ``psnr_other_time``, see :func:`evaluate_views`) and
 ``ckpt/last.pt`` while training (everything needed to resume: parameters, optimiser state,
 densification statistics, RNG states, iteration, log rows; written atomically every
 ``checkpoint_every`` iterations and removed after a successful fit). Rerunning after an
@@ -608,23 +609,49 @@ def _options_key(opts: FitOptions) -> dict:
 # ------------------------------------------------------------------------------ evaluation
 
 
+def affine_colour_match(pred: torch.Tensor, image: torch.Tensor) -> torch.Tensor:
+    """``pred`` [H, W, 3] with its colours mapped onto ``image`` [H, W, 3] by the one affine
+    transform (3 x 3 matrix and offset, least squares over every pixel) that fits best,
+    clamped to [0, 1]: a render compared with a photo of another exposure and white balance."""
+    x = pred.reshape(-1, 3)
+    X = torch.cat([x, torch.ones_like(x[:, :1])], dim=1)  # [P, 4]
+    M = torch.linalg.lstsq(X.double(), image.reshape(-1, 3).double()).solution  # [4, 3]
+    return (X.double() @ M).to(pred.dtype).clamp(0, 1).reshape(image.shape)
+
+
 @torch.no_grad()
 def evaluate_views(model: GaussianModel4D, views: list[TrainView], backend: str = "auto",
                    exposure: ExposureCorrection | None = None) -> pd.DataFrame:
     """PSNR / SSIM of every view rendered at its own time (images at the working size), with
-    view ``i``'s colour correction ``exposure(., i)`` applied when given."""
+    view ``i``'s colour correction ``exposure(., i)`` applied when given.
+
+    With views of two times, also ``psnr_other_time``: the PSNR of the *other* time's render
+    at the view's camera, its colours matched to the photo by one affine transform
+    (:func:`affine_colour_match`, so that exposure and white balance do not count). Where
+    the times share their Gaussians it is near ``psnr`` on every unchanged part of the view;
+    where each time's photos took Gaussians of their own, the other time's render of the
+    same surfaces is a guess and it falls far below (a real change lowers it too)."""
     rows = []
     cache: dict[float, object] = {}
+    times = sorted({v.time for v in views})
     for i, v in enumerate(views):
-        if v.time not in cache:
-            cache[v.time] = model.at_time(v.time)
+        for t in times:
+            if t not in cache:
+                cache[t] = model.at_time(t)
         h, w = v.image.shape[:2]
         c, _, _ = rasterize_gaussians(cache[v.time], v.viewmat, v.K, w, h, None, "RGB", backend)
         pred = c[0] if exposure is None else exposure(c[0], i)
         pred = pred.clamp(0, 1)
-        rows.append({"image": v.camera.image, "set": v.camera.set, "time": v.time,
-                     "psnr": float(psnr(pred, v.image)), "ssim": float(ssim(pred, v.image))})
-    return pd.DataFrame(rows, columns=["image", "set", "time", "psnr", "ssim"])
+        row = {"image": v.camera.image, "set": v.camera.set, "time": v.time,
+               "psnr": float(psnr(pred, v.image)), "ssim": float(ssim(pred, v.image))}
+        if len(times) == 2:
+            other = times[1] if v.time == times[0] else times[0]
+            c, _, _ = rasterize_gaussians(cache[other], v.viewmat, v.K, w, h, None, "RGB",
+                                          backend)
+            row["psnr_other_time"] = float(psnr(affine_colour_match(c[0], v.image), v.image))
+        rows.append(row)
+    columns = ["image", "set", "time", "psnr", "ssim"]
+    return pd.DataFrame(rows, columns=columns + (["psnr_other_time"] if len(times) == 2 else []))
 
 
 # ------------------------------------------------------------------------------ entry point
@@ -655,7 +682,8 @@ def fit_scene(scene_dir: str | Path, cameras_json: str | Path, points_ply: str |
         callback: called with the trainer after every iteration (progress hooks, tests).
     Returns:
         summary dict: iterations, n_gaussians, seconds, psnr_t0/ssim_t0/psnr_t1/ssim_t1 (mean
-        over training images), extent, resumed_from (iteration or 0), width, height.
+        over training images), with both times psnr_other_time (its mean, see
+        :func:`evaluate_views`), extent, resumed_from (iteration or 0), width, height.
     Raises:
         SceneError for unusable inputs; TrainingError when the loss becomes NaN/inf.
     """
@@ -790,6 +818,13 @@ def fit_scene(scene_dir: str | Path, cameras_json: str | Path, points_ply: str |
         q = quality[quality["time"] == t]
         summary[f"psnr_t{t}"] = float(q["psnr"].mean()) if len(q) else float("nan")
         summary[f"ssim_t{t}"] = float(q["ssim"].mean()) if len(q) else float("nan")
+    if "psnr_other_time" in quality:
+        summary["psnr_other_time"] = float(quality["psnr_other_time"].mean())
+        log.info("the other time's render at the training photos (colours matched): PSNR %.2f dB "
+                 "against %.2f dB at their own time (see fit/quality.csv: far below means each "
+                 "time's photos took Gaussians of their own, and the two renders of a pose "
+                 "differ where nothing changed)", summary["psnr_other_time"],
+                 float(quality["psnr"].mean()))
     log.info("fit done: %s", summary)
     return summary
 

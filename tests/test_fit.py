@@ -502,6 +502,39 @@ def test_time_change_weight_shares_gaussians_between_the_times(scene, fitted, tm
     assert d_in > 3.0 * d_out, (d_in, d_out)
 
 
+def test_saturating_change_price_keeps_the_objects_and_shares_the_rest(scene, fitted,
+                                                                       tmp_path):
+    """``time_change_scale``: a price ten times the default's, saturating beyond half a logit,
+    shares more Gaussians between the times than the default fit, and the added and removed
+    objects still show between the t=0 and t=1 renders at novel views."""
+    summary = fit_scene(scene.dir, scene.cameras, scene.points, tmp_path,
+                        small_options(time_change_weight=0.01, time_change_scale=0.5),
+                        device="cpu")
+    shared = load_model(tmp_path / "model.pt", "cpu")
+    default = load_model(fitted.out / "model.pt", "cpu")
+    assert _opacity_changes(shared) < _opacity_changes(default)
+    for k in ("psnr_t0", "psnr_t1"):
+        assert summary[k] > fitted.summary[k] - 0.5, (k, summary[k], fitted.summary[k])
+    d_in, d_out, _ = _change_at_eval_views(scene, shared)
+    assert d_in > 3.0 * d_out, (d_in, d_out)
+
+
+def test_opacity_change_price_saturates_with_a_scale():
+    from gdiff.splat.model import GaussianModel4D
+    m = GaussianModel4D(4, sh_degree=0, deform=None)
+    with torch.no_grad():
+        m.splats["dopacity"].copy_(torch.tensor([0.0, 0.01, -2.0, 6.0]))
+    gate = torch.tensor([1.0, 1.0, 1.0, 0.0])  # the last one's change is not learnt
+    price = lambda *a: float(m.opacity_change(*a).detach())  # noqa: E731
+    assert price(gate) == pytest.approx((0.01 + 2.0) / 3)
+    s = 0.5
+    want = (s * np.log1p(0.01 / s) + s * np.log1p(2.0 / s)) / 3
+    assert price(gate, s) == pytest.approx(want, rel=1e-6)
+    # a small change pays about as much either way, a whole one far less
+    assert s * np.log1p(0.01 / s) == pytest.approx(0.01, rel=0.02)
+    assert price(None, s) < 0.5 * price(None)
+
+
 def test_short_fit_does_not_depend_on_the_thread_count(scene, tmp_path, torch_threads):
     """A short fit (densification included) gives the same model on one thread and on two:
     every Gaussian parameter and the deformation field bitwise equal, so the compiled kernels

@@ -196,13 +196,18 @@ class GaussianModel4D(nn.Module):
                 d = self.splats[name]
                 d.mul_(time_gate.to(d).view((-1,) + (1,) * (d.dim() - 1)))
 
-    def opacity_change(self, time_gate: torch.Tensor | None = None) -> torch.Tensor | None:
-        """Mean absolute per-Gaussian opacity change ``dopacity`` (logit units; scalar,
+    def opacity_change(self, time_gate: torch.Tensor | None = None,
+                       scale: float = 0.0) -> torch.Tensor | None:
+        """Mean per-Gaussian price of the opacity change ``dopacity`` (logit units; scalar,
         differentiable) over the Gaussians whose change is learnt (``time_gate`` [N] 0/1; all
-        without a gate). None when the model has no opacity change term."""
+        without a gate): ``|dopacity|``, or with ``scale`` s > 0 ``s log(1 + |dopacity| / s)``
+        (the same slope at no change, growing only logarithmically beyond s). None when the
+        model has no opacity change term."""
         if "dopacity" not in self.splats:
             return None
         d = self.splats["dopacity"].abs()
+        if scale > 0:
+            d = scale * torch.log1p(d / scale)
         if time_gate is None:
             return d.mean()
         gate = time_gate.to(d)

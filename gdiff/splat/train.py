@@ -44,7 +44,11 @@ Gaussians of their own wherever they are fitted a little better so. The two rend
 pose then differ in fine detail all over the scene, which the comparison must tell from a
 change; with it the times share their Gaussians, and an opacity changes where the images of
 the two times disagree. The default is a light price; even so it can weaken the change of a
-small, far object, and a much higher one does so more.
+small, far object, and a much higher one does so more. With ``time_change_scale`` s > 0 each
+Gaussian pays s log(1 + |dopacity| / s) instead: as much as before for a small change, but a
+whole change (an object there at one time only) costs little more than a half one, so the
+price takes the small changes that let each time keep Gaussians of its own while leaving an
+object that the photos show at one time only free to vanish at the other.
 
 Each iteration renders one training image at the working resolution (``max_side``); every
 image is used once per epoch, before and after images alternating (random order within a
@@ -132,6 +136,9 @@ class FitOptions:
     time_smooth_weight: float = 0.001  # 2nd difference along t (needs time_resolution >= 3)
     time_l1_weight: float = 0.0001  # |1 - time plane|: prefer no change over time
     time_change_weight: float = 0.001  # mean |dopacity|: prefer Gaussians shared by the times
+    # > 0: each Gaussian's price is s log(1 + |dopacity| / s) (logit units), as |dopacity| for a
+    # small change but growing only logarithmically for a whole one (model.opacity_change)
+    time_change_scale: float = 0.0
     background: str = "black"  # black | white | random (random colour per step)
     # learning rates (means: x scene extent, exponential decay over the run)
     lr_means: float = 1.6e-4
@@ -216,7 +223,7 @@ class FitOptions:
         for name in ("coarse_iters", "fine_iters", "max_side", "densify_every", "log_every",
                      "checkpoint_every", "sh_degree_interval", "max_gaussians",
                      "opacity_reset_every", "reset_hold", "time_min_views",
-                     "time_change_weight"):
+                     "time_change_weight", "time_change_scale"):
             if getattr(self, name) < 0:
                 raise ValueError(f"{name} must be >= 0, got {getattr(self, name)}")
         if self.coarse_iters + self.fine_iters < 1:
@@ -519,7 +526,8 @@ class Trainer:
             loss = loss + (o.plane_tv_weight * terms["plane_tv"]
                            + o.time_smooth_weight * terms["time_smooth"]
                            + o.time_l1_weight * terms["time_l1"])
-        change = m.opacity_change(gate) if o.time_change_weight > 0 else None
+        change = (m.opacity_change(gate, o.time_change_scale) if o.time_change_weight > 0
+                  else None)
         if change is not None:
             terms["time_change"] = change
             loss = loss + o.time_change_weight * change

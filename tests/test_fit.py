@@ -18,7 +18,7 @@ from gdiff.cameras import load_cameras, save_cameras
 from gdiff.errors import SceneError, TrainingError
 from gdiff.io import read_image, write_image
 from gdiff.splat.losses import psnr
-from gdiff.splat.model import load_model
+from gdiff.splat.model import GaussianModel4D, load_model
 from gdiff.splat.ply import read_gaussians, write_points
 from gdiff.splat.render import render, render_main
 from gdiff.splat.train import FitOptions, affine_colour_match, fit_scene
@@ -520,7 +520,6 @@ def test_saturating_change_price_keeps_the_objects_and_shares_the_rest(scene, fi
 
 
 def test_opacity_change_price_saturates_with_a_scale():
-    from gdiff.splat.model import GaussianModel4D
     m = GaussianModel4D(4, sh_degree=0, deform=None)
     with torch.no_grad():
         m.splats["dopacity"].copy_(torch.tensor([0.0, 0.01, -2.0, 6.0]))

@@ -640,12 +640,9 @@ def evaluate_views(model: GaussianModel4D, views: list[TrainView], backend: str 
     where each time's photos took Gaussians of their own, the other time's render of the
     same surfaces is a guess and it falls far below (a real change lowers it too)."""
     rows = []
-    cache: dict[float, object] = {}
     times = sorted({v.time for v in views})
+    cache = {t: model.at_time(t) for t in times}  # the Gaussians at each time, deformed once
     for i, v in enumerate(views):
-        for t in times:
-            if t not in cache:
-                cache[t] = model.at_time(t)
         h, w = v.image.shape[:2]
         c, _, _ = rasterize_gaussians(cache[v.time], v.viewmat, v.K, w, h, None, "RGB", backend)
         pred = c[0] if exposure is None else exposure(c[0], i)

@@ -17,11 +17,12 @@ import torch
 from gdiff.cameras import load_cameras, save_cameras
 from gdiff.errors import SceneError, TrainingError
 from gdiff.io import read_image, write_image
+from gdiff.splat.exposure import affine_colour_match
 from gdiff.splat.losses import psnr
 from gdiff.splat.model import GaussianModel4D, load_model
 from gdiff.splat.ply import read_gaussians, write_points
 from gdiff.splat.render import render, render_main
-from gdiff.splat.train import FitOptions, affine_colour_match, fit_scene
+from gdiff.splat.train import FitOptions, fit_scene
 from gdiff.synth import build_scene, get_preset, make_scene
 
 SEED = 3

@@ -17,6 +17,8 @@ photo stays in the model. The transforms model the camera, not the scene: sequen
 maps and PLY files are rendered without them (the model's colours are those of a photo with
 the identity transform). Colours are the sRGB-encoded values the model is fitted to (see
 docs/design.md), so a transform is an affine approximation of a gain in that encoding.
+:func:`affine_colour_match` fits one such transform to a render by least squares, to compare
+the render with a photo of another exposure (the fit's ``psnr_other_time``).
 """
 
 from __future__ import annotations
@@ -70,4 +72,14 @@ class ExposureCorrection(nn.Module):
         return pd.DataFrame(rows)
 
 
-__all__ = ["ExposureCorrection"]
+def affine_colour_match(pred: torch.Tensor, image: torch.Tensor) -> torch.Tensor:
+    """``pred`` [H, W, 3] with its colours mapped onto ``image`` [H, W, 3] by the one affine
+    transform (3 x 3 matrix and offset, least squares over every pixel) that fits best,
+    clamped to [0, 1]: a render compared with a photo of another exposure and white balance."""
+    x = pred.reshape(-1, 3)
+    X = torch.cat([x, torch.ones_like(x[:, :1])], dim=1)  # [P, 4]
+    M = torch.linalg.lstsq(X.double(), image.reshape(-1, 3).double()).solution  # [4, 3]
+    return (X.double() @ M).to(pred.dtype).clamp(0, 1).reshape(image.shape)
+
+
+__all__ = ["ExposureCorrection", "affine_colour_match"]

@@ -106,7 +106,7 @@ from ..errors import SceneError, TrainingError
 from ..io import read_image, remove_stale_temporaries, save_torch, write_csv
 from ..log import progress
 from .deform import DeformConfig
-from .exposure import ExposureCorrection
+from .exposure import ExposureCorrection, affine_colour_match
 from .gaussians import DensifyStats, DensifyThresholds, camera_extent, refine, reset_opacity
 from .losses import l1, psnr, ssim
 from .model import GaussianModel4D, save_model
@@ -615,16 +615,6 @@ def _options_key(opts: FitOptions) -> dict:
 
 
 # ------------------------------------------------------------------------------ evaluation
-
-
-def affine_colour_match(pred: torch.Tensor, image: torch.Tensor) -> torch.Tensor:
-    """``pred`` [H, W, 3] with its colours mapped onto ``image`` [H, W, 3] by the one affine
-    transform (3 x 3 matrix and offset, least squares over every pixel) that fits best,
-    clamped to [0, 1]: a render compared with a photo of another exposure and white balance."""
-    x = pred.reshape(-1, 3)
-    X = torch.cat([x, torch.ones_like(x[:, :1])], dim=1)  # [P, 4]
-    M = torch.linalg.lstsq(X.double(), image.reshape(-1, 3).double()).solution  # [4, 3]
-    return (X.double() @ M).to(pred.dtype).clamp(0, 1).reshape(image.shape)
 
 
 @torch.no_grad()

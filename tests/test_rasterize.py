@@ -4,6 +4,8 @@ closed-form single-Gaussian cases, for the torch backend and the compiled C++ ba
 from __future__ import annotations
 
 import math
+import os
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -447,6 +449,52 @@ def test_stale_build_lock_is_removed_and_a_fresh_one_kept(tmp_path):
     old = time.time() - 3600
     os.utime(lock, (old, old))
     assert clear_stale_lock(tmp_path) and not lock.exists()
+
+
+_HOLDER = """
+import sys, time
+from pathlib import Path
+from gdiff.splat.csrc import build_guard
+d = Path(sys.argv[1])
+with build_guard(d):
+    (d / "lock").write_text("")  # as torch's builder marks its build
+    print("held", flush=True)
+    time.sleep(float(sys.argv[2]))
+    (d / "lock").unlink()  # the builder's release
+    (d / "released").write_text("")
+"""
+
+
+def _hold_build_guard(tmp_path, seconds):
+    import subprocess
+    import sys
+
+    root = str(Path(__file__).resolve().parents[1])
+    env = {**os.environ, "PYTHONPATH": root + os.pathsep + os.environ.get("PYTHONPATH", "")}
+    child = subprocess.Popen([sys.executable, "-c", _HOLDER, str(tmp_path), str(seconds)],
+                             stdout=subprocess.PIPE, text=True, env=env)
+    assert child.stdout.readline().strip() == "held"
+    return child
+
+
+def test_a_build_lock_left_by_a_killed_process_is_removed_at_once(tmp_path):
+    from gdiff.splat.csrc import build_guard
+
+    child = _hold_build_guard(tmp_path, 600)
+    child.kill()  # as a Ctrl-C'd or killed job mid-build
+    child.wait()
+    assert (tmp_path / "lock").exists()  # torch's builder would wait for it forever
+    with build_guard(tmp_path):
+        assert not (tmp_path / "lock").exists()
+
+
+def test_the_build_guard_waits_for_a_live_build(tmp_path):
+    from gdiff.splat.csrc import build_guard
+
+    child = _hold_build_guard(tmp_path, 1)
+    with build_guard(tmp_path):  # entered only once the child's build released its lock
+        assert (tmp_path / "released").exists() and not (tmp_path / "lock").exists()
+    assert child.wait() == 0
 
 
 def test_each_version_of_the_kernel_sources_has_its_own_build(tmp_path, monkeypatch):

@@ -23,6 +23,7 @@ backward pass.
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import logging
 import os
@@ -68,8 +69,44 @@ def clear_stale_lock(build_dir: str | os.PathLike, max_age: float = STALE_LOCK_S
         return False
     lock.unlink(missing_ok=True)
     log.warning("removed a stale build lock %s (%.0f s old, left by an interrupted build)",
-                lock, age)
+                lock, max(age, 0.0))
     return True
+
+
+GUARD_NAME = "gdiff-build.lock"  # gdiff's own lock file, beside torch's ``lock``
+
+
+@contextlib.contextmanager
+def build_guard(build_dir: str | os.PathLike):
+    """Hold gdiff's lock on the extension's build folder while torch builds or loads it.
+
+    torch's builder marks a build in progress by the file ``build_dir/lock`` and waits, without
+    a time limit, while it exists; a process killed mid-build leaves it behind. gdiff's lock is
+    an OS file lock (``flock``) on ``build_dir/gdiff-build.lock``, which the OS releases when
+    its holder exits in any way. Every gdiff process builds or loads only while holding it, so
+    a ``lock`` found while holding it was left by a process that died: it is removed at once
+    (logged as a warning), and a run started right after a killed one does not hang. Waiting
+    for another live process's build is logged. Without ``fcntl`` (not POSIX) the lock is
+    removed only once older than :data:`STALE_LOCK_SECONDS` (:func:`clear_stale_lock`)."""
+    build_dir = Path(build_dir)
+    build_dir.mkdir(parents=True, exist_ok=True)
+    try:
+        import fcntl
+    except ImportError:
+        clear_stale_lock(build_dir)
+        yield
+        return
+    with open(build_dir / GUARD_NAME, "a+") as f:
+        try:
+            fcntl.flock(f, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            log.info("waiting for another process building the C++ kernels in %s", build_dir)
+            fcntl.flock(f, fcntl.LOCK_EX)
+        try:
+            clear_stale_lock(build_dir, max_age=-1.0)
+            yield
+        finally:
+            fcntl.flock(f, fcntl.LOCK_UN)
 
 
 def build_name() -> str:
@@ -100,12 +137,12 @@ def load(required: bool = False, verbose: bool = False):
                     from torch.utils.cpp_extension import load as _load
 
                     name = build_name()
-                    clear_stale_lock(_get_build_directory(name, False))
-                    _load(name=name, sources=[str(_UNIT)], verbose=verbose,
-                          is_python_module=False,
-                          extra_cflags=["-O3", "-march=native", "-ffp-contract=off",
-                                        "-fno-math-errno", "-fopenmp"],
-                          extra_ldflags=["-fopenmp"])
+                    with build_guard(_get_build_directory(name, False)):
+                        _load(name=name, sources=[str(_UNIT)], verbose=verbose,
+                              is_python_module=False,
+                              extra_cflags=["-O3", "-march=native", "-ffp-contract=off",
+                                            "-fno-math-errno", "-fopenmp"],
+                              extra_ldflags=["-fopenmp"])
                     _module = torch.ops.gdiff_splat
                 except Exception as e:  # compiler missing, headers missing, build error
                     _failed = f"{type(e).__name__}: {str(e).strip().splitlines()[-1:]}"

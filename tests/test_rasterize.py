@@ -4,7 +4,6 @@ closed-form single-Gaussian cases, for the torch backend and the compiled C++ ba
 from __future__ import annotations
 
 import math
-import os
 from pathlib import Path
 
 import numpy as np
@@ -469,10 +468,10 @@ def _hold_build_guard(tmp_path, seconds):
     import subprocess
     import sys
 
-    root = str(Path(__file__).resolve().parents[1])
-    env = {**os.environ, "PYTHONPATH": root + os.pathsep + os.environ.get("PYTHONPATH", "")}
+    # run from the checkout's root, as tests/test_parallel.py does, so the child imports it
     child = subprocess.Popen([sys.executable, "-c", _HOLDER, str(tmp_path), str(seconds)],
-                             stdout=subprocess.PIPE, text=True, env=env)
+                             stdout=subprocess.PIPE, text=True,
+                             cwd=Path(__file__).resolve().parents[1])
     assert child.stdout.readline().strip() == "held"
     return child
 

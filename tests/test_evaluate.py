@@ -3,6 +3,7 @@
 import json
 import math
 import re
+from pathlib import Path
 
 import numpy as np
 import pandas as pd
@@ -243,10 +244,15 @@ def test_box_ground_truth_on_eval_views_and_training_images(tmp_path, caplog):
     write_image(root / "before" / "v00.png", _texture(7)[::2, ::2])
     cams.append(Camera(2 * W, 2 * H, 100.0, 100.0, W, H, look_at([9, -3.0, 1.0], [0, 0, 0]),
                        image="after/v00.png", set="after", time=1))
+    # a training image where nothing changed: an empty list, so every mark there is far
+    write_image(root / "after" / "v01.png", _texture(8)[::2, ::2])
+    cams.append(Camera(2 * W, 2 * H, 100.0, 100.0, W, H, look_at([8, -3.0, 1.0], [0, 0, 0]),
+                       image="after/v01.png", set="after", time=1))
     save_cameras(root / "cameras.json", cams)
     (root / "eval" / "boxes.json").write_text(json.dumps({"note": "pixels", "views": {
         "001.png": {"boxes_xyxy_px": [list(boxes["001"]), [0, 0, 6, 6]]},
-        "v00.png": {"after_src": "x.png", "boxes_xyxy_px": [[2, 2, 12, 10], [20, 14, 30, 22]]}}}))
+        "v00.png": {"after_src": "x.png", "boxes_xyxy_px": [[2, 2, 12, 10], [20, 14, 30, 22]]},
+        "v01.png": {"boxes_xyxy_px": []}}}))
     seen = []
 
     def change_map(pmodel, camera, t=None):
@@ -255,6 +261,10 @@ def test_box_ground_truth_on_eval_views_and_training_images(tmp_path, caplog):
             m = np.zeros((camera.height, camera.width), bool)  # far false alarm
             m[3:9, 3:11] = True
             m[0:4, 28:32] = True
+            return {"mask": m}
+        if round(camera.center[0]) == 8:  # the view without change: 5 x 3 px marked
+            m = np.zeros((camera.height, camera.width), bool)
+            m[10:13, 2:7] = True
             return {"mask": m}
         name = pmodel[round(camera.center[0])]
         return {"mask": read_mask(root / "eval" / "masks" / f"{name}.png")}
@@ -288,6 +298,8 @@ def test_box_ground_truth_on_eval_views_and_training_images(tmp_path, caplog):
     assert (r["gtbox_N"], r["gtbox_found"]) == (2, 1) and math.isnan(r["F1"])
     # margin 4 px at the image's size (32 px wide) = 2 px: the 4x4 block at x 28..32 is far
     assert r["far_FP"] == 16 and r["far_frac"] == pytest.approx(16 / (W // 2 * H // 2))
+    nv = df[(df["view"] == "after/v01") & (df["method"] == "partition")].iloc[0]
+    assert (nv["gtbox_N"], nv["gtbox_found"], nv["far_FP"]) == (0, 0, 15)
     ev = df[(df["view"] == "001") & (df["method"] == "partition")].iloc[0]
     assert (ev["gtbox_N"], ev["gtbox_found"]) == (2, 1) and ev["F1"] == 1.0
     assert df[df["view"] == "000"]["gtbox_N"].isna().all()
@@ -438,3 +450,15 @@ def test_model_renderer_renders_each_camera_and_time_once(monkeypatch):
     tight(cam, 0.0)
     tight(cam, 0.0)
     assert calls == [0.0, 1.0, 0.0, 0.0, 0.0]
+
+
+def test_shipped_kitchen_boxes_read():
+    """benchmarks/data/obchange_kitchen_boxes.json (the robot kitchen's hand-drawn boxes) reads
+    as box ground truth: six after views, the three without change as empty lists, 8 boxes
+    inside the 640 x 480 photos."""
+    b = E.read_boxes(Path(__file__).resolve().parents[1] / "benchmarks" / "data"
+                     / "obchange_kitchen_boxes.json")
+    assert sorted(b) == [f"after/v{i:02d}.png" for i in range(6)]
+    assert [len(b[f"after/v{i:02d}.png"]) for i in range(6)] == [0, 0, 0, 2, 3, 3]
+    allb = np.concatenate([v for v in b.values() if len(v)])
+    assert (allb[:, :2] >= 0).all() and (allb[:, 2] <= 640).all() and (allb[:, 3] <= 480).all()

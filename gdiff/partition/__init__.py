@@ -64,10 +64,17 @@ L3d (kNN KL), plus the fit stage's L1 + L_TV when the geometry is fine-tuned too
   changes on poorly fitted surfaces) the maximum follows the noise. A number fixes the
   threshold. The value used, how it was chosen, the key-view best and the key-view F1 curve go
   to ``partition/threshold.json`` and the log.
+* Union map (``before_gate``): the change map of a viewpoint with no time given is what is there
+  now and is new (the t=1 map) plus what was there and changed (the t=0 map), the latter only
+  where the two times render differently at the pixel (:mod:`.gate`). A before photo's mask
+  covers the surface an added object hid from it, so those surface Gaussians are labelled
+  changed although they are still there after; from another pose they show beside the object,
+  where both times render the same. 0 keeps the plain per-pixel maximum.
 
 Modules: :mod:`.options` (``PartitionOptions``), :mod:`.head` (encodings + 1x1 conv),
 :mod:`.losses` (BCE, L3d), :mod:`.render` (rasterized features, cached blend weights),
-:mod:`.model` (``PartitionModel``, change maps, model.pt i/o), :mod:`.data` (key views),
+:mod:`.model` (``PartitionModel``, change maps, model.pt i/o), :mod:`.gate` (the union's
+before-map gate), :mod:`.data` (key views),
 :mod:`.train` (``fine_tune``, ``train_partition``), :mod:`.export` (PLY split, key-pose maps),
 :mod:`.cli` (``gdiff change-map``). Their public names are importable from ``gdiff.partition``.
 

@@ -80,7 +80,9 @@ def change_map_main(argv=None) -> int:
     p.add_argument("--frame", default="0",
                    help="with --cameras: frame index or image path (default 0)")
     p.add_argument("--t", type=float, default=None,
-                   help="time: 0 (before) or 1 (after); omitted = union of t=0 and t=1")
+                   help="time: 0 (before) or 1 (after); omitted = union of t=0 and t=1 (the "
+                        "t=0 map where the two times render differently: "
+                        "partition.before_gate)")
     p.add_argument("--out", required=True, help="binary change mask PNG (255 = changed)")
     p.add_argument("--prob-out", help="also write the change probability (PNG x255, or .npy)")
     p.add_argument("--image-out", help="also write the rendered image (PNG)")

@@ -18,6 +18,7 @@ from ..device import resolve_device
 from ..errors import ModelFileError
 from ..io import save_torch
 from ..splat.model import GaussianModel4D
+from .gate import gate_before_map
 from .head import ChangeHead, change_probability
 from .options import PartitionOptions
 from .render import render_features
@@ -36,9 +37,12 @@ class PartitionModel(nn.Module):
             used by the CLI when no intrinsics are given.
         background: [3] colour behind the rendered images (the fit stage's).
         threshold: probability above which a pixel / Gaussian counts as changed.
+        before_gate: quantile of :func:`gdiff.partition.gate.gate_before_map` applied to the
+            t=0 map in the union map (0 = no gate).
     """
 
-    def __init__(self, fit, head: ChangeHead, camera, background=None, threshold: float = 0.5):
+    def __init__(self, fit, head: ChangeHead, camera, background=None, threshold: float = 0.5,
+                 before_gate: float = 0.0):
         super().__init__()
         if head.n != len(fit):
             raise ValueError(f"head has {head.n} encodings but the model {len(fit)} Gaussians")
@@ -48,6 +52,7 @@ class PartitionModel(nn.Module):
         bg = torch.zeros(3) if background is None else torch.as_tensor(background).float()
         self.register_buffer("background", bg.reshape(3).clone())
         self.threshold = float(threshold)
+        self.before_gate = float(before_gate)
 
     def render(self, camera, t: float, with_rgb: bool = False) -> dict[str, torch.Tensor]:
         """Render at ``camera`` and time ``t``: dict ``logits`` [H, W, 2], ``prob`` [H, W]
@@ -72,11 +77,13 @@ def render_change_map(pmodel: PartitionModel, camera, t: float | None = None,
         pmodel: from :func:`load_partition_model` or :func:`train_partition`.
         camera: :class:`gdiff.cameras.Camera` (any pose and intrinsics).
         t: time in [0, 1], or None for the union of t = 0 (what was there and changed) and
-            t = 1 (what is there and is new).
+            t = 1 (what is there and is new). With ``pmodel.before_gate`` the t = 0 map
+            counts in the union only where the two times render differently
+            (:func:`gdiff.partition.gate.gate_before_map`).
         with_image: also return the rendered colour image(s).
     Returns:
         dict of numpy arrays: ``prob`` [H, W] float32 in [0, 1] (for t=None the per-pixel max of
-        the two times), ``mask`` [H, W] bool (``prob > pmodel.threshold``), ``prob_t0`` and
+        the two times, where gated ``prob_t1``), ``mask`` [H, W] bool (``prob > pmodel.threshold``), ``prob_t0`` and
         ``prob_t1`` (None when that time was not rendered) and, with ``with_image``,
         ``image`` [H, W, 3] float32 sRGB (the render at ``t``; for t=None at t=0) plus
         ``image_t0`` / ``image_t1``.
@@ -84,9 +91,10 @@ def render_change_map(pmodel: PartitionModel, camera, t: float | None = None,
     times = [0.0, 1.0] if t is None else [float(t)]
     if not all(0.0 <= x <= 1.0 for x in times):
         raise ValueError(f"t must lie in [0, 1], got {t}")
+    gate = t is None and pmodel.before_gate > 0
     res = {}
     for x in times:
-        r = pmodel.render(camera, x, with_rgb=with_image)
+        r = pmodel.render(camera, x, with_rgb=with_image or gate)
         res[x] = {k: v.detach().float().cpu().numpy() for k, v in r.items()}
     out: dict[str, np.ndarray | None] = {
         "prob_t0": res[0.0]["prob"] if 0.0 in res else None,
@@ -94,6 +102,11 @@ def render_change_map(pmodel: PartitionModel, camera, t: float | None = None,
     }
     if t is None:
         out["prob"] = np.maximum(out["prob_t0"], out["prob_t1"])
+        if gate:
+            keep = gate_before_map(out["prob_t0"], out["prob_t1"], res[0.0]["rgb"],
+                                   res[1.0]["rgb"], res[0.0]["alpha"], res[1.0]["alpha"],
+                                   pmodel.threshold, pmodel.before_gate)
+            out["prob"] = np.where(keep, out["prob"], out["prob_t1"])
     else:
         out["prob"] = res[times[0]]["prob"]
     out["prob"] = out["prob"].astype(np.float32)
@@ -120,6 +133,7 @@ def partition_blob(pmodel: PartitionModel, options: PartitionOptions | None = No
             "camera": _camera_to_dict(pmodel.camera),
             "background": pmodel.background.detach().cpu().tolist(),
             "threshold": pmodel.threshold,
+            "before_gate": pmodel.before_gate,
             "options": dataclasses.asdict(options) if options is not None else {}}
 
 
@@ -160,5 +174,6 @@ def _from_blob(blob, device, Camera, GaussianModel4D) -> PartitionModel:
     head = ChangeHead(enc.shape[0], enc.shape[1])
     head.load_state_dict(blob["head"])
     cam = Camera(**blob["camera"])
-    pm = PartitionModel(fit, head, cam, blob.get("background"), blob.get("threshold", 0.5))
+    pm = PartitionModel(fit, head, cam, blob.get("background"), blob.get("threshold", 0.5),
+                        blob.get("before_gate", 0.0))
     return pm.to(device).eval()

@@ -44,6 +44,10 @@ class PartitionOptions:
                                       # threshold_gain F1 there and reaches F1 0.5
                                       # (partition/threshold.json)
     threshold_gain: float = 0.01      # see threshold
+    before_gate: float = 0.95         # the t=0 map counts in the union map only where the two
+                                      # times' renders differ by more than this quantile of
+                                      # their difference over the view's unchanged pixels
+                                      # (gdiff.partition.gate); 0 = plain union
     max_side: int | None = None       # longest image side for training; None = the fit's, 0 = full
     checkpoint_every: int = 500       # write a resumable checkpoint every this many steps
     log_every: int = 50               # rows of train_log.csv
@@ -63,6 +67,8 @@ class PartitionOptions:
                              "views)")
         if not 0.0 <= self.threshold_gain < 1.0:
             raise ValueError("threshold_gain must lie in [0, 1)")
+        if not 0.0 <= self.before_gate < 1.0:
+            raise ValueError("before_gate must lie in [0, 1) (0 = no gate)")
         if self.lambda_2d < 0 or self.lambda_3d < 0:
             raise ValueError("lambda_2d and lambda_3d must be >= 0")
         if self.max_side is not None and self.max_side < 0:

@@ -99,7 +99,8 @@ def _latest_checkpoint(ckdir):
 
 
 # options that do not change the result: a checkpoint stays valid when they differ
-_NON_RESULT_OPTIONS = ("iterations", "checkpoint_every", "log_every", "threshold")
+_NON_RESULT_OPTIONS = ("iterations", "checkpoint_every", "log_every", "threshold",
+                       "before_gate")
 
 
 def run_key(opts: PartitionOptions, **inputs) -> dict:
@@ -343,8 +344,8 @@ def train_partition(fit_model_path, cameras_json, keyframes_csv, scene_dir, out_
     bg = [1.0, 1.0, 1.0] if fo["background"] == "white" else None  # random/black: black
     meta = getattr(fit, "meta", None) or {}
     cam0 = Camera(**meta["camera"]) if "camera" in meta else views[0].camera.with_pose(np.eye(4))
-    pm = PartitionModel(fit, head, cam0, bg, 0.5 if opts.threshold is None else opts.threshold
-                        ).to(dev)
+    pm = PartitionModel(fit, head, cam0, bg, 0.5 if opts.threshold is None else opts.threshold,
+                        opts.before_gate).to(dev)
     extent = float(meta.get("extent") or camera_extent(
         np.stack([v.camera.center for v in views])))
     log.info("partition: %d Gaussians, %d key views, %d iterations on %s", len(fit), len(views),
@@ -354,7 +355,11 @@ def train_partition(fit_model_path, cameras_json, keyframes_csv, scene_dir, out_
     rows = fine_tune(pm, data, opts, out / "ckpt", extent, key)
     t_train = _time.perf_counter() - t_start
     maps = key_view_maps(pm, views)
-    pm.threshold = _pick_threshold(opts, views, maps, out / "threshold.json")
+    th = _pick_threshold(opts, views, maps, out / "threshold.json")
+    if th != pm.threshold and pm.before_gate > 0:  # the gate's unchanged pixels move with it
+        pm.threshold = th
+        maps = key_view_maps(pm, views)
+    pm.threshold = th
     save_partition_model(pm, out / "model.pt", opts)
     write_csv(out / "train_log.csv", pd.DataFrame(rows))
     prob = pm.gaussian_probability().detach().cpu().numpy().astype(np.float32)

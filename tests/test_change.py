@@ -197,7 +197,8 @@ def test_stage_files(demo_paths, tmp_path, monkeypatch):
     assert summary["changed"] >= 1
     kf = pd.read_csv(res / "change" / "keyframes.csv")
     assert list(kf.columns) == ["path", "frame", "image", "set", "time", "mask_t0", "mask_t1",
-                                "mask_union", "judged"]
+                                "mask_union", "judged", "light_changed"]
+    assert not kf["light_changed"].any()  # the light did not change here
     assert list(kf["frame"]) == [0, 3] and (kf["time"] == 0).all()
     # where the stage could judge (coverage.csv, the judged maps): only against photos of both
     # times; this path has photos of one time, so every pixel was compared and none is listed

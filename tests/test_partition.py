@@ -608,6 +608,51 @@ def test_threshold_null_is_chosen_from_the_key_views(tiny_fit, tmp_path):
     assert (out / "maps" / "union" / "p1_00003.png").is_file()
 
 
+def test_before_gate_is_kept_with_the_model_and_left_off_under_a_change_of_light(
+        tiny_fit, tmp_path, caplog):
+    """The union maps' before-map gate (partition.before_gate) is saved with the model, so
+    every later map (evaluate, the CLI) applies it, and it only removes pixels from the plain
+    union. When the compare stage took the scene for a change of light (``light_changed`` in
+    keyframes.csv) the two times' renders differ everywhere, and the plain union is kept."""
+    import logging
+    import shutil
+
+    import pandas as pd
+
+    from gdiff.partition import (load_partition_model, read_key_views, render_change_map,
+                                 train_partition)
+
+    res, scene_dir = tiny_fit
+    opts = PartitionOptions(iterations=30, frozen_iterations=20)
+    summary = train_partition(res / "fit" / "model.pt", res / "poses" / "cameras.json",
+                              res / "change" / "keyframes.csv", scene_dir, tmp_path / "a", opts,
+                              device="cpu")
+    assert summary["before_gate"] == opts.before_gate == 0.95
+    pm = load_partition_model(tmp_path / "a" / "model.pt", "cpu")
+    assert pm.before_gate == 0.95
+    for v in read_key_views(res / "change" / "keyframes.csv", res / "poses" / "cameras.json",
+                            scene_dir):
+        cam = v.camera
+        gated = render_change_map(pm, cam, None)
+        pm.before_gate = 0.0
+        plain = render_change_map(pm, cam, None)
+        pm.before_gate = 0.95
+        assert not (gated["mask"] & ~plain["mask"]).any()
+
+    work = tmp_path / "results"
+    shutil.copytree(res / "change", work / "change")
+    kf = pd.read_csv(work / "change" / "keyframes.csv")
+    kf["light_changed"] = True
+    kf.to_csv(work / "change" / "keyframes.csv", index=False)
+    with caplog.at_level(logging.INFO, logger="gdiff.partition"):
+        summary = train_partition(res / "fit" / "model.pt", res / "poses" / "cameras.json",
+                                  work / "change" / "keyframes.csv", scene_dir, tmp_path / "b",
+                                  opts, device="cpu")
+    assert summary["before_gate"] == 0.0
+    assert load_partition_model(tmp_path / "b" / "model.pt", "cpu").before_gate == 0.0
+    assert "change of light" in caplog.text
+
+
 def test_scene_with_no_change_gives_an_empty_partition_without_warnings(tiny_fit, tmp_path):
     """Key-view masks with no changed pixel (compare found nothing): the partition marks no
     Gaussian, its maps are empty and its summary says the key-view IoU is undefined (NaN)

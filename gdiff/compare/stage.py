@@ -895,7 +895,8 @@ def compare(instances_dir, poses_json, out_dir, options: CompareOptions | None =
     (:func:`gdiff.compare.coverage.judged_map`; both only when the key frames hold photos of
     both times) and, last, ``out_dir/keyframes.csv`` (path, frame, image, set, time, mask_t0,
     mask_t1, mask_union, judged: the pose's judged map or empty; paths relative to the parent
-    of ``out_dir``, i.e. results/<scene>/). ``workers``:
+    of ``out_dir``, i.e. results/<scene>/; light_changed: whether the stage took the scene for
+    a change of light, the same on every row). ``workers``:
     processes the poses are judged on (the files do not depend on it). ``photo_root``: the
     folder the key frames' ``image`` names are relative to (:func:`gdiff.cameras.image_root`);
     with it the training photos, brought to one exposure for both visits
@@ -963,7 +964,8 @@ def compare(instances_dir, poses_json, out_dir, options: CompareOptions | None =
             fr = meta[p][i]
             rows.append(dict(path=p, frame=i, image=fr.get("image", ""), set=fr.get("set") or "",
                              time=keys[(p, i)], mask_t0=rel["t0"], mask_t1=rel["t1"],
-                             mask_union=rel["union"], judged=rel["judged"]))
+                             mask_union=rel["union"], judged=rel["judged"],
+                             light_changed=bool(df.attrs.get("light_changed"))))
     coverage = df.attrs.get("coverage", pd.DataFrame(columns=COVERAGE_COLUMNS))
     if o.lineup_share > 0:
         coverage = _with_lineup(coverage, lineup_table(load, keys, meta, o.lineup_share,
@@ -982,7 +984,8 @@ def compare(instances_dir, poses_json, out_dir, options: CompareOptions | None =
               df.attrs.get("candidates", pd.DataFrame(columns=CANDIDATE_COLUMNS)))
     write_csv(out_dir / "changes.csv", df[df["changed"]].drop(columns=["changed"]))
     write_csv(out_dir / "keyframes.csv", pd.DataFrame(rows, columns=[
-        "path", "frame", "image", "set", "time", "mask_t0", "mask_t1", "mask_union", "judged"]))
+        "path", "frame", "image", "set", "time", "mask_t0", "mask_t1", "mask_union", "judged",
+        "light_changed"]))
     counts = df.loc[df["changed"], "type"].value_counts().to_dict()
     return {"poses": len(masks), "changed": int(df["changed"].sum()),
             "instances": int(df.loc[df["changed"], "instance"].nunique()), **counts}

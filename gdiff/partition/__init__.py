@@ -69,7 +69,8 @@ L3d (kNN KL), plus the fit stage's L1 + L_TV when the geometry is fine-tuned too
   where the two times render differently at the pixel (:mod:`.gate`). A before photo's mask
   covers the surface an added object hid from it, so those surface Gaussians are labelled
   changed although they are still there after; from another pose they show beside the object,
-  where both times render the same. 0 keeps the plain per-pixel maximum.
+  where both times render the same. 0 keeps the plain per-pixel maximum, and so does a scene
+  the compare stage took for a change of light (``light_changed`` in its keyframes.csv).
 
 Modules: :mod:`.options` (``PartitionOptions``), :mod:`.head` (encodings + 1x1 conv),
 :mod:`.losses` (BCE, L3d), :mod:`.render` (rasterized features, cached blend weights),

@@ -89,6 +89,13 @@ def read_key_views(keyframes_csv, cameras_json, scene_dir, max_side: int = 0) ->
     return views
 
 
+def light_changed(keyframes_csv) -> bool:
+    """Whether the compare stage took the scene for a change of light (the ``light_changed``
+    column of ``change/keyframes.csv``; False when the file predates it)."""
+    df = pd.read_csv(keyframes_csv)
+    return "light_changed" in df.columns and bool(df["light_changed"].astype(bool).any())
+
+
 def _load_image(path, camera) -> np.ndarray:
     """Photo as float32 [H, W, 3] sRGB in [0, 1], resized (area) to the camera's size."""
     return read_image_sized(path, camera.width, camera.height)

@@ -16,7 +16,9 @@ so its render differs from the t=0 one by less than the object does from its sur
 call unchanged, then averaged over a small window) must exceed the ``quantile`` of that
 difference over those unchanged pixels. A fit to few photos renders unchanged surfaces with
 differences well above zero, and this keeps the test relative to how well the two times agree
-at that view.
+at that view. Under a change of light the renders differ everywhere (moved shadows, another
+colour of light), a removed object's difference then falls within that spread, and the
+partition stage leaves the union ungated when the compare stage took the scene for one.
 """
 
 from __future__ import annotations

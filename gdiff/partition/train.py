@@ -29,7 +29,7 @@ from ..splat.gaussians import camera_extent
 from ..splat.losses import l1
 from ..splat.model import load_model
 from ..splat.train import FitOptions
-from .data import _load_image, _load_mask, read_key_views
+from .data import _load_image, _load_mask, light_changed, read_key_views
 from .export import choose_threshold, key_view_maps, write_key_maps, write_split_ply
 from .head import ChangeHead
 from .losses import bce_on_change_logit, changed_fraction, ignore_weight, neighbour_kl
@@ -344,8 +344,14 @@ def train_partition(fit_model_path, cameras_json, keyframes_csv, scene_dir, out_
     bg = [1.0, 1.0, 1.0] if fo["background"] == "white" else None  # random/black: black
     meta = getattr(fit, "meta", None) or {}
     cam0 = Camera(**meta["camera"]) if "camera" in meta else views[0].camera.with_pose(np.eye(4))
+    gate = opts.before_gate
+    if gate > 0 and light_changed(keyframes_csv):
+        log.info("partition: the union map is the plain union of the two times' maps "
+                 "(partition.before_gate not applied): the compare stage took the scene for a "
+                 "change of light, and the two times' renders then differ everywhere")
+        gate = 0.0
     pm = PartitionModel(fit, head, cam0, bg, 0.5 if opts.threshold is None else opts.threshold,
-                        opts.before_gate).to(dev)
+                        gate).to(dev)
     extent = float(meta.get("extent") or camera_extent(
         np.stack([v.camera.center for v in views])))
     log.info("partition: %d Gaussians, %d key views, %d iterations on %s", len(fit), len(views),
@@ -371,6 +377,7 @@ def train_partition(fit_model_path, cameras_json, keyframes_csv, scene_dir, out_
     write_csv(out / "keypose_scores.csv", scores)
     summary = {"gaussians": len(fit), **counts, "key_views": len(views),
                "iterations": opts.iterations, "threshold": pm.threshold,
+               "before_gate": pm.before_gate,
                "keypose_iou_own_time": _mean_defined(scores["iou_own_time"]),
                "keypose_iou_union": _mean_defined(scores["iou_union"]),
                "seconds_train": t_train, "seconds_total": _time.perf_counter() - t_start}

@@ -360,12 +360,14 @@ def train_partition(fit_model_path, cameras_json, keyframes_csv, scene_dir, out_
                   cameras=_sha1(cameras_json))
     rows = fine_tune(pm, data, opts, out / "ckpt", extent, key)
     t_train = _time.perf_counter() - t_start
+    # the threshold is chosen on the plain union: the key-view masks it is measured against
+    # hold the surface an added object hid from the before photos, which the gate leaves out
+    pm.before_gate = 0.0
     maps = key_view_maps(pm, views)
-    th = _pick_threshold(opts, views, maps, out / "threshold.json")
-    if th != pm.threshold and pm.before_gate > 0:  # the gate's unchanged pixels move with it
-        pm.threshold = th
+    pm.threshold = _pick_threshold(opts, views, maps, out / "threshold.json")
+    pm.before_gate = gate
+    if gate > 0:
         maps = key_view_maps(pm, views)
-    pm.threshold = th
     save_partition_model(pm, out / "model.pt", opts)
     write_csv(out / "train_log.csv", pd.DataFrame(rows))
     prob = pm.gaussian_probability().detach().cpu().numpy().astype(np.float32)

@@ -54,7 +54,7 @@ L3d (kNN KL), plus the fit stage's L1 + L_TV when the geometry is fine-tuned too
   then render from the fit's own geometry. With exact masks (a synthetic scene's ground
   truth) the joint phase sharpens the outlines instead.
 * Map threshold (``threshold``): ``None`` (the default) keeps 0.5, the probability a
-  BCE-trained head calls even, unless the probability threshold whose union maps best
+  BCE-trained head calls even, unless the probability threshold whose (ungated) union maps best
   reproduce the compare stage's union masks at the key views (max pooled F1 over a 0.01
   grid, :func:`choose_threshold`, after training) beats 0.5 there by more than
   ``threshold_gain`` F1 and reaches F1 0.5 there

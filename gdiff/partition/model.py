@@ -83,8 +83,9 @@ def render_change_map(pmodel: PartitionModel, camera, t: float | None = None,
         with_image: also return the rendered colour image(s).
     Returns:
         dict of numpy arrays: ``prob`` [H, W] float32 in [0, 1] (for t=None the per-pixel max of
-        the two times, where gated ``prob_t1``), ``mask`` [H, W] bool (``prob > pmodel.threshold``), ``prob_t0`` and
-        ``prob_t1`` (None when that time was not rendered) and, with ``with_image``,
+        the two times, where gated ``prob_t1``), ``mask`` [H, W] bool
+        (``prob > pmodel.threshold``), ``prob_t0`` and ``prob_t1`` (None when that time was not
+        rendered) and, with ``with_image``,
         ``image`` [H, W, 3] float32 sRGB (the render at ``t``; for t=None at t=0) plus
         ``image_t0`` / ``image_t1``.
     """

@@ -80,12 +80,14 @@ def overlay(image: np.ndarray, mask: np.ndarray, colour=(1.0, 0.15, 0.1), alpha:
     return img
 
 
-def key_view_maps(pm: PartitionModel, views: list[KeyView]) -> list[dict]:
+def key_view_maps(pm: PartitionModel, views: list[KeyView],
+                  before_gate: float | None = None) -> list[dict]:
     """Change probabilities at every key pose: per view a dict ``prob_t0``, ``prob_t1`` and
-    ``prob`` (their union, the per-pixel max), float32 [H, W] at the view's camera."""
+    ``prob`` (their union: :func:`render_change_map` with ``before_gate``, None = the model's),
+    float32 [H, W] at the view's camera."""
     out = []
     for v in progress(views, desc="partition maps"):
-        r = render_change_map(pm, v.camera, None)
+        r = render_change_map(pm, v.camera, None, before_gate=before_gate)
         out.append({k: r[k] for k in ("prob_t0", "prob_t1", "prob")})
     return out
 

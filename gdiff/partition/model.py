@@ -70,7 +70,8 @@ class PartitionModel(nn.Module):
 
 @torch.no_grad()
 def render_change_map(pmodel: PartitionModel, camera, t: float | None = None,
-                      with_image: bool = False) -> dict[str, np.ndarray | None]:
+                      with_image: bool = False, before_gate: float | None = None
+                      ) -> dict[str, np.ndarray | None]:
     """The change map of a viewpoint.
 
     Args:
@@ -81,6 +82,8 @@ def render_change_map(pmodel: PartitionModel, camera, t: float | None = None,
             counts in the union only where the two times render differently
             (:func:`gdiff.partition.gate.gate_before_map`).
         with_image: also return the rendered colour image(s).
+        before_gate: the gate's quantile for this map (0 = the plain union); None = the
+            model's ``before_gate``.
     Returns:
         dict of numpy arrays: ``prob`` [H, W] float32 in [0, 1] (for t=None the per-pixel max of
         the two times, where gated ``prob_t1``), ``mask`` [H, W] bool
@@ -92,7 +95,8 @@ def render_change_map(pmodel: PartitionModel, camera, t: float | None = None,
     times = [0.0, 1.0] if t is None else [float(t)]
     if not all(0.0 <= x <= 1.0 for x in times):
         raise ValueError(f"t must lie in [0, 1], got {t}")
-    gate = t is None and pmodel.before_gate > 0
+    quantile = pmodel.before_gate if before_gate is None else float(before_gate)
+    gate = t is None and quantile > 0
     res = {}
     for x in times:
         r = pmodel.render(camera, x, with_rgb=with_image or gate)
@@ -106,7 +110,7 @@ def render_change_map(pmodel: PartitionModel, camera, t: float | None = None,
         if gate:
             keep = gate_before_map(out["prob_t0"], out["prob_t1"], res[0.0]["rgb"],
                                    res[1.0]["rgb"], res[0.0]["alpha"], res[1.0]["alpha"],
-                                   pmodel.threshold, pmodel.before_gate)
+                                   pmodel.threshold, quantile)
             out["prob"] = np.where(keep, out["prob"], out["prob_t1"])
     else:
         out["prob"] = res[times[0]]["prob"]

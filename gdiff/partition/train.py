@@ -362,11 +362,9 @@ def train_partition(fit_model_path, cameras_json, keyframes_csv, scene_dir, out_
     t_train = _time.perf_counter() - t_start
     # the threshold is chosen on the plain union: the key-view masks it is measured against
     # hold the surface an added object hid from the before photos, which the gate leaves out
-    pm.before_gate = 0.0
-    maps = key_view_maps(pm, views)
+    maps = key_view_maps(pm, views, before_gate=0.0)
     pm.threshold = _pick_threshold(opts, views, maps, out / "threshold.json")
-    pm.before_gate = gate
-    if gate > 0:
+    if gate > 0:  # the gate's unchanged pixels are those under the chosen threshold
         maps = key_view_maps(pm, views)
     save_partition_model(pm, out / "model.pt", opts)
     write_csv(out / "train_log.csv", pd.DataFrame(rows))

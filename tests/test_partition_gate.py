@@ -116,3 +116,23 @@ def test_gate_keeps_everything_when_nothing_is_unchanged():
     rgb = np.zeros((10, 10, 3), np.float32)
     keep = gate_before_map(p, p, rgb, rgb, np.ones((10, 10)), np.ones((10, 10)), 0.5, 0.95)
     assert keep.all()
+
+
+def test_light_changed_is_read_from_keyframes_and_bad_values_are_named(tmp_path):
+    import pandas as pd
+    import pytest
+
+    from gdiff.errors import SceneError
+    from gdiff.partition.data import light_changed
+
+    f = tmp_path / "keyframes.csv"
+    base = {"path": ["p1", "p2"], "frame": [0, 3]}
+    pd.DataFrame(base).to_csv(f, index=False)
+    assert light_changed(f) is False  # keyframes written before the column existed
+    pd.DataFrame({**base, "light_changed": [True, True]}).to_csv(f, index=False)
+    assert light_changed(f) is True
+    pd.DataFrame({**base, "light_changed": [False, False]}).to_csv(f, index=False)
+    assert light_changed(f) is False
+    pd.DataFrame({**base, "light_changed": ["yes", None]}).to_csv(f, index=False)
+    with pytest.raises(SceneError, match=r"keyframes\.csv: column light_changed"):
+        light_changed(f)

@@ -91,9 +91,18 @@ def read_key_views(keyframes_csv, cameras_json, scene_dir, max_side: int = 0) ->
 
 def light_changed(keyframes_csv) -> bool:
     """Whether the compare stage took the scene for a change of light (the ``light_changed``
-    column of ``change/keyframes.csv``; False when the file predates it)."""
+    column of ``change/keyframes.csv``; False when the file predates it). Raises
+    :class:`gdiff.errors.SceneError` naming the file when the column holds anything but
+    True / False."""
     df = pd.read_csv(keyframes_csv)
-    return "light_changed" in df.columns and bool(df["light_changed"].astype(bool).any())
+    if "light_changed" not in df.columns:
+        return False
+    col = df["light_changed"]
+    if col.dtype != bool:
+        raise SceneError(f"{keyframes_csv}: column light_changed must hold True or False on "
+                         f"every row, got {sorted(set(map(str, col)))[:5]}; rerun the compare "
+                         "stage")
+    return bool(col.any())
 
 
 def _load_image(path, camera) -> np.ndarray:

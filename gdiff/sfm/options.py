@@ -110,11 +110,10 @@ class PosesOptions:
             rig).
         turn_baseline: how an image that no triangulated points tie to the others is turned to
             agree with a photo from the same place (:func:`gdiff.sfm.refine_known.best_turn`):
-            ``given`` fits the turn with the given baseline between the two held; ``refined``
-            fits the baseline's direction with it (its length and the given centre kept).
-            With the baseline held, centres a few centimetres off let the turn slide degrees
-            off along the epipolar lines; ``refined`` gives the turn the photos show, but the
-            change maps of the robot captures measured no better with it (see design.md).
+            ``refined`` (default) fits the baseline's direction with the turn (its length and
+            the given centre kept) and gives the turn the photos show; ``given`` fits the turn
+            with the given baseline between the two held, where centres a few centimetres off
+            let the turn slide degrees off along the epipolar lines (see design.md).
         known_max_error: how far off the given poses may be, as a reprojection error in
             fractions of the longer image side: the first triangulation accepts this much,
             then the threshold halves each round of the refinement down to
@@ -161,7 +160,7 @@ class PosesOptions:
     seed_min_empty: float = 0.5
     seed_sweep_extra: int = 3
     refine_known: bool = True
-    turn_baseline: str = "given"
+    turn_baseline: str = "refined"
     known_max_error: float = 0.03
     max_unregistered_fraction: float = 0.2
     num_threads: int = -1

@@ -13,9 +13,9 @@ viewing directions), so world frame and scale stay the user's.
 An image that too few triangulated points tie to the others (a view no other waypoint
 shares) often shares many matches with the photo of the same waypoint on the other visit: two
 photos from about one place, too close for triangulation, but their matches give the rotation
-between them (:func:`best_turn`; with ``poses.turn_baseline: refined`` the baseline's
-direction is refined with it, its length and the centres kept as given). Such an image is
-turned to agree with that photo and moved with it. Of a pair of which neither is tied, the
+between them (:func:`best_turn`; by default, ``poses.turn_baseline: refined``, the
+baseline's direction is refined with it, its length and the centres kept as given). Such an
+image is turned to agree with that photo and moved with it. Of a pair of which neither is tied, the
 before photo keeps its given centre and takes the correction all refined photos share (their
 mean turn: a camera mounted a few degrees off turns every pose alike), and the after photo is
 turned to agree with it. A robot's other pose errors differ from waypoint to waypoint (the

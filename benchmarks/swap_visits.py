@@ -25,16 +25,18 @@ out, with a message.
 from __future__ import annotations
 
 import argparse
-import json
 import os
+import shutil
 import sys
+import tempfile
 from pathlib import Path
 
 import cv2
 import numpy as np
 
 from gdiff.evaluate import read_boxes
-from gdiff.io import write_json
+from gdiff.errors import SceneError
+from gdiff.io import read_json, write_json
 
 SETS = {"before": "after", "after": "before"}
 #: matches (Lowe's ratio test) and RANSAC inliers a homography needs
@@ -85,6 +87,25 @@ def swap_visits(scene: Path, out: Path) -> dict:
                          "(gdiff import writes it) or no poses at all")
     if out.exists():
         raise SystemExit(f"{out} exists; give a new folder")
+    cams, box_file = scene / "cameras.json", scene / "eval" / "boxes.json"
+    try:  # read everything before writing anything
+        data = read_json(cams) if cams.exists() else None
+        boxes = read_boxes(box_file) if box_file.exists() else None
+    except SceneError as e:
+        raise SystemExit(str(e)) from None
+    out.parent.mkdir(parents=True, exist_ok=True)
+    tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.", dir=out.parent))
+    try:
+        info = _write_swapped(scene, tmp, data, boxes)
+        os.replace(tmp, out)  # the whole folder appears at once
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
+    return info
+
+
+def _write_swapped(scene: Path, out: Path, data: dict | None, boxes: dict | None) -> dict:
+    """The body of :func:`swap_visits`, into the existing empty folder ``out``; ``data``: the
+    scene's cameras.json (or None), ``boxes``: its :func:`read_boxes` (or None)."""
     n = 0
     for s, other in SETS.items():
         (out / other).mkdir(parents=True)
@@ -92,21 +113,18 @@ def swap_visits(scene: Path, out: Path) -> dict:
             if p.is_file():
                 os.symlink(p.resolve(), out / other / p.name)
                 n += 1
-    cams = scene / "cameras.json"
-    if cams.exists():
-        data = json.loads(cams.read_text())
+    if data is not None:
         for fr in data.get("frames", []):
-            top, _, rest = fr["image"].partition("/")
+            top, _, rest = str(fr.get("image", "")).partition("/")
             if top in SETS:
                 fr["image"] = f"{SETS[top]}/{rest}"
                 fr["set"] = SETS[top]
                 fr["time"] = 1 if SETS[top] == "after" else 0
         write_json(out / "cameras.json", data)
     info = {"photos": n, "boxes_carried": [], "boxes_dropped": []}
-    box_file = scene / "eval" / "boxes.json"
-    if box_file.exists():
+    if boxes is not None:
         carried = {}
-        for name, b in read_boxes(box_file).items():
+        for name, b in boxes.items():
             src = _photo(scene, name)
             if src is None or src.parent.name != "after":
                 info["boxes_dropped"].append(name)

@@ -71,6 +71,11 @@ def test_swap_visits_exchanges_sets_and_carries_boxes(tmp_path):
         SV.swap_visits(scene, out)
     with pytest.raises(SystemExit, match="before/"):
         SV.swap_visits(tmp_path / "nothing", tmp_path / "x")
+    (scene / "eval" / "boxes.json").write_text('{"v00.png": [[5, 5, 1, 1]]}')
+    with pytest.raises(SystemExit, match="boxes.json"):
+        SV.swap_visits(scene, tmp_path / "bad")
+    # nothing half-written
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["scene", "swapped"]
 
 
 def test_carry_boxes_without_a_homography():

@@ -34,8 +34,9 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from gdiff.evaluate import read_boxes
+from gdiff.compare.lineup import sift_matches
 from gdiff.errors import SceneError
+from gdiff.evaluate import box_image, read_boxes
 from gdiff.io import read_json, write_json
 
 SETS = {"before": "after", "after": "before"}
@@ -48,16 +49,9 @@ def carry_boxes(boxes: np.ndarray, src: np.ndarray, dst: np.ndarray) -> np.ndarr
     uint8 [H, W] each) by the homography of their SIFT matches: the bounding box of each box's
     carried corners. None when the images give no homography (fewer than :data:`MIN_INLIERS`
     inliers)."""
-    sift = cv2.SIFT_create(4000)
-    ka, da = sift.detectAndCompute(src, None)
-    kb, db = sift.detectAndCompute(dst, None)
-    if da is None or db is None or len(ka) < 2 or len(kb) < 2:
+    pa, pb = sift_matches(src, dst, n_features=4000, ratio=0.75)
+    if len(pa) < MIN_INLIERS:
         return None
-    good = [p for p, q in cv2.BFMatcher().knnMatch(da, db, k=2) if p.distance < 0.75 * q.distance]
-    if len(good) < MIN_INLIERS:
-        return None
-    pa = np.float32([ka[p.queryIdx].pt for p in good])
-    pb = np.float32([kb[p.trainIdx].pt for p in good])
     cv2.setRNGSeed(0)
     H, inl = cv2.findHomography(pa, pb, cv2.RANSAC, 4.0)
     if H is None or int(inl.sum()) < MIN_INLIERS:
@@ -67,12 +61,6 @@ def carry_boxes(boxes: np.ndarray, src: np.ndarray, dst: np.ndarray) -> np.ndarr
     c = cv2.perspectiveTransform(corners.reshape(-1, 1, 2).astype(np.float64), H)
     c = c.reshape(-1, 4, 2)
     return np.c_[c[..., 0].min(1), c[..., 1].min(1), c[..., 0].max(1), c[..., 1].max(1)]
-
-
-def _photo(scene: Path, name: str) -> Path | None:
-    """The scene's photo ``name`` (``after/v00.png``); a bare name is looked up in ``after/``."""
-    p = scene / name if "/" in name else scene / "after" / name
-    return p if p.is_file() else None
 
 
 def swap_visits(scene: Path, out: Path) -> dict:
@@ -125,7 +113,8 @@ def _write_swapped(scene: Path, out: Path, data: dict | None, boxes: dict | None
     if boxes is not None:
         carried = {}
         for name, b in boxes.items():
-            src = _photo(scene, name)
+            found = box_image(scene, name, ())  # the scene's photo the entry names
+            src = scene / found[1] if found else None
             if src is None or src.parent.name != "after":
                 info["boxes_dropped"].append(name)
                 continue

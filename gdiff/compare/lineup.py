@@ -52,24 +52,32 @@ def _luma8(rgb: np.ndarray) -> np.ndarray:
     return cv2.cvtColor((np.clip(rgb, 0, 1) * 255 + 0.5).astype(np.uint8), cv2.COLOR_RGB2GRAY)
 
 
+def sift_matches(grey0: np.ndarray, grey1: np.ndarray, n_features: int = N_FEATURES,
+                 ratio: float = RATIO) -> tuple[np.ndarray, np.ndarray]:
+    """OpenCV SIFT features of two uint8 grey images ([H, W] each; sizes may differ), the
+    strongest ``n_features`` of each, paired by Lowe's ratio test at ``ratio``: their pixel
+    positions ``(p0, p1)``, float32 [M, 2] each (x right, y down; M may be 0)."""
+    sift = cv2.SIFT_create(n_features)
+    k0, d0 = sift.detectAndCompute(grey0, None)
+    k1, d1 = sift.detectAndCompute(grey1, None)
+    if d0 is None or d1 is None or len(k0) < 2 or len(k1) < 2:
+        return np.zeros((0, 2), np.float32), np.zeros((0, 2), np.float32)
+    pairs = cv2.BFMatcher(cv2.NORM_L2).knnMatch(d0, d1, k=2)
+    good = [m[0] for m in pairs if len(m) == 2 and m[0].distance < ratio * m[1].distance]
+    return (np.float32([k0[m.queryIdx].pt for m in good]).reshape(-1, 2),
+            np.float32([k1[m.trainIdx].pt for m in good]).reshape(-1, 2))
+
+
 def render_lineup(rgb0: np.ndarray, rgb1: np.ndarray) -> Lineup:
     """How well the renders ``rgb0`` and ``rgb1`` (sRGB float [H, W, 3] in [0, 1], the same
     pose at the two times) line up: their SIFT feature matches and the share in place."""
     if rgb0.shape != rgb1.shape:
         raise ValueError(f"renders of one pose differ in size: {rgb0.shape} and {rgb1.shape}")
-    sift = cv2.SIFT_create(N_FEATURES)
-    k0, d0 = sift.detectAndCompute(_luma8(rgb0), None)
-    k1, d1 = sift.detectAndCompute(_luma8(rgb1), None)
-    if d0 is None or d1 is None or len(k0) < 2 or len(k1) < 2:
+    p0, p1 = sift_matches(_luma8(rgb0), _luma8(rgb1))
+    if not len(p0):
         return Lineup(0, float("nan"))
-    pairs = cv2.BFMatcher(cv2.NORM_L2).knnMatch(d0, d1, k=2)
-    good = [m[0] for m in pairs if len(m) == 2 and m[0].distance < RATIO * m[1].distance]
-    if not good:
-        return Lineup(0, float("nan"))
-    p0 = np.float32([k0[m.queryIdx].pt for m in good])
-    p1 = np.float32([k1[m.trainIdx].pt for m in good])
     tol = in_place_px(rgb0.shape)
-    return Lineup(len(good), float((np.linalg.norm(p1 - p0, axis=1) <= tol).mean()))
+    return Lineup(len(p0), float((np.linalg.norm(p1 - p0, axis=1) <= tol).mean()))
 
 
 def poorly_lined_up(in_place: np.ndarray, share: float) -> np.ndarray:

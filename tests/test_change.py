@@ -211,9 +211,10 @@ def test_stage_files(demo_paths, tmp_path, monkeypatch):
     ch = pd.read_csv(res / "change" / "changes.csv")
     assert set(ch["type"]) <= {"added", "removed", "moved"} and len(ch) == summary["changed"]
     cand = pd.read_csv(res / "change" / "candidates.csv")
-    assert list(cand.columns) == ["instance", "ids", "types", "n_t0", "n_t1", "n_confirmed",
-                                  "area", "x", "y", "z", "size", "support", "colour", "photo",
-                                  "photo_other", "photo_points", "own_px", "verdict"]
+    assert list(cand.columns) == ["instance", "place", "ids", "types", "n_t0", "n_t1",
+                                  "n_confirmed", "area", "x", "y", "z", "size", "support",
+                                  "colour", "photo", "photo_other", "photo_points", "own_px",
+                                  "verdict"]
     assert {"x", "y", "z", "size"} <= set(ch.columns)
     kept = cand[cand["verdict"] != "dropped"]
     assert set(kept["instance"]) == set(ch["instance"])
@@ -807,6 +808,32 @@ def test_moved_pairs_join_one_removed_and_one_added_object_but_do_not_chain():
     assert inst[1] == inst[2] == 1  # named by its largest member (the first on ties)
     assert inst[3] == inst[4] == 3
     assert inst[6] == inst[7] and len({inst[3], inst[5], inst[6]}) == 3
+    place = dict(zip(df["id"], df["place"]))  # the pieces at one place, without moved pairs
+    assert place[1] == 1 and place[2] == 2 and place[3] == place[4] == 3
+    assert place[6] == place[7] == 6 and place[5] == 5
+
+
+def test_each_place_of_a_moved_object_is_confirmed_on_its_own():
+    """Two moved pairs. In the first, both places changed colour against their surroundings:
+    the object moved, and both are kept as one moved object. In the second, only the removed
+    place did; the added one is a piece of unchanged surface that paired up with it (its
+    colour change is well under ``confirm_colour``). Pooled over the pair (weighted by its
+    poses) the two would pass together; judged place by place, the added piece is dropped and
+    the removed place is kept as a removed object of its own."""
+    df = pd.DataFrame(dict(id=[1, 2, 3, 4], changed=[True] * 4, type=["moved"] * 4,
+                           partner=[2, 1, 4, 3], instance=[1, 1, 3, 3], place=[1, 2, 3, 4],
+                           colour=[0.6, 0.5, 0.6, 0.05], n_colour=[2, 2, 1, 1],
+                           n_t0=[2, 0, 1, 0], n_t1=[0, 2, 0, 1], n_confirmed=[2, 2, 1, 1],
+                           area=[300.0, 280.0, 500.0, 400.0], support=[0.0] * 4,
+                           **{c: [0.0] * 4 for c in ("x", "y", "z", "size")}))
+    cmp_stage._confirm_by_evidence(df, CompareOptions(), 8)
+    cand = df.attrs["candidates"].set_index("place")
+    assert list(cand["verdict"]) == ["kept: colour"] * 3 + ["dropped"]
+    assert list(cand["instance"]) == [1, 1, 3, 3]
+    row = df.set_index("id")
+    assert list(row["changed"]) == [True, True, True, False]
+    assert list(row["type"]) == ["moved", "moved", "removed", ""]
+    assert list(row["partner"]) == [2, 1, 0, 0] and list(row["instance"]) == [1, 1, 3, 0]
 
 
 def test_flat_object_removed_from_or_added_to_a_staying_surface_is_a_change():
@@ -1364,6 +1391,7 @@ def test_colour_is_not_believed_where_the_photos_of_both_visits_show_the_same_po
         key_photos = cmp_stage._key_photos(frames.get, keys, photos)
         df = pd.DataFrame(dict(id=[1, 2, 3], changed=[False, True, True],
                                type=["", "added", "added"], instance=[0, 2, 3],
+                               place=[0, 2, 3], partner=[0, 0, 0],
                                colour=[np.nan, 0.6, 0.6], n_colour=[0, 1, 1],
                                n_t0=[8, 0, 0], n_t1=[8, 4, 4], n_confirmed=[0, 1, 1],
                                area=[1.0, 2000, 900], support=[np.nan, 0.0, 0.0],
@@ -1408,6 +1436,7 @@ def test_colour_is_not_believed_for_an_object_only_the_other_visits_poses_show()
         o = CompareOptions(**kw)
         df = pd.DataFrame(dict(id=[1, 2, 3, 4], changed=[False, True, True, True],
                                type=["", "added", "removed", "removed"], instance=[0, 2, 3, 4],
+                               place=[0, 2, 3, 4], partner=[0, 0, 0, 0],
                                colour=[np.nan, 0.6, 0.6, 0.6], n_colour=[0, 1, 1, 1],
                                n_t0=[4, 0, 2, 2], n_t1=[4, 2, 0, 0], n_confirmed=[0, 2, 2, 2],
                                area=[1.0, 100, 150, 200], support=[np.nan, 0.0, 0.0, support],
@@ -2194,6 +2223,7 @@ def test_photo_confirms_an_object_that_neither_depth_nor_colour_can():
         o = CompareOptions(**{"confirm_photo": 2.0, **kw})
         df = pd.DataFrame(dict(id=[1, 2, 3, 4], changed=[False, True, True, True],
                                type=["", "added", "added", "added"], instance=[0, 2, 3, 4],
+                               place=[0, 2, 3, 4], partner=[0, 0, 0, 0],
                                colour=[np.nan, 0.01, 0.02, 0.01], n_colour=[0, 3, 3, 3],
                                n_t0=[6, 0, 0, 0], n_t1=[6, 6, 6, 6],
                                n_confirmed=[0, 3, n_confirmed, 3], area=[1.0, 800, 1200, 1250],
@@ -2217,7 +2247,7 @@ def test_photo_confirms_an_object_that_neither_depth_nor_colour_can():
         assert not df["changed"].any() and cand.loc[3, "verdict"] == "dropped", kw
     # where the before photos did not see the table, the before render there is a guess
     unseen = {k: ~mug for k in keys}
-    df = pd.DataFrame(dict(id=[3], changed=[True], type=["added"], instance=[3],
+    df = pd.DataFrame(dict(id=[3], changed=[True], type=["added"], instance=[3], place=[3],
                            n_confirmed=[3]))
     cmp_stage._photo_support(df, ids, keys, diffs, 2.0, 24, unseen)
     assert np.isnan(df.loc[0, "photo"]) and np.isnan(df.loc[0, "photo_other"])

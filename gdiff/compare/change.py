@@ -915,7 +915,8 @@ def decide(stats: list[tuple[object, dict[int, dict]]], o: CompareOptions) -> pd
     at each time), n_confirmed, first, last (pose names), area (mean pixels), colour (median
     over the poses where it was confirmed of :func:`surround_colour_change`; NaN when never
     measured), n_colour (those poses), instance (the object a changed ID belongs to, see
-    :func:`_group_instances`; 0 when unchanged), x, y, z (median over poses of the median world
+    :func:`_group_instances`; 0 when unchanged), place (the pieces of it at one place, see
+    the same; 0 when unchanged), x, y, z (median over poses of the median world
     point of its mask, in the frame of the cameras: where it is) and size (median over poses of
     sqrt(mask area) * depth / focal: its extent, in the same units); x, y, z and size are NaN
     for an ID seen only where there was no depth or camera.
@@ -1031,7 +1032,7 @@ def replaced(df: pd.DataFrame, o: CompareOptions) -> list[int]:
         if np.isfinite(np.r_[here[0], there[0], s0, s1]).all() and \
                 max(s0, s1) <= SIZE_RATIO * min(s0, s1) and not _apart(here, there):
             df.at[i, "changed"], df.at[i, "type"] = True, typ
-            df.at[i, "partner"], df.at[i, "instance"] = h, t
+            df.at[i, "partner"], df.at[i, "instance"], df.at[i, "place"] = h, t, t
             marked.append(t)
     return marked
 
@@ -1048,8 +1049,15 @@ def _group_instances(df: pd.DataFrame) -> None:
     a textured surface; lookalike pieces then pair up as moved between many objects, and
     joining them all would chain objects across the scene into one.) The instance is named by
     the ID of its largest member (mean area); 0 for unchanged IDs.
+
+    Column ``place`` (in place): the same without the moved pairs, the pieces at one place
+    (named by the ID of their largest member; 0 for unchanged IDs). A change is confirmed place
+    by place (:func:`gdiff.compare.stage._confirm_by_evidence`): an object that moved changed
+    both where it stood and where it stands, and the evidence of the one place does not vouch
+    for the other.
     """
     df["instance"] = 0
+    df["place"] = 0
     ch = df.index[df["changed"]].tolist()
     if not ch:
         return
@@ -1057,6 +1065,10 @@ def _group_instances(df: pd.DataFrame) -> None:
     records = df.loc[ch, "_pos"].tolist()
     near = ~_apart_all(records, records) & (side[:, None] == side[None, :])
     piece = link_groups(len(ch), list(zip(*np.nonzero(np.triu(near, 1)))))
+    for g in np.unique(piece):
+        members = [ch[k] for k in np.flatnonzero(piece == g)]
+        head = max(members, key=lambda i: df.at[i, "area"])
+        df.loc[members, "place"] = int(df.at[head, "id"])
     pos = {int(df.at[i, "id"]): k for k, i in enumerate(ch)}
     pairs = set()  # moved pairs between objects (groups of pieces)
     for k, a in enumerate(ch):

@@ -529,15 +529,16 @@ def _id_counts(ids: dict[Key, np.ndarray], n: int = 2) -> list[np.ndarray]:
 
 def _instance_sums(df: pd.DataFrame, counts: np.ndarray) -> pd.Series:
     """Per changed row of ``df`` (indexed like it), the sum of ``counts`` (int, indexed by ID
-    value) over every ID of its ``instance``."""
+    value) over every ID of its ``place`` (the pieces of its object at one place,
+    :func:`gdiff.compare.change._group_instances`): the unit a change is confirmed by."""
     ch = df.index[df["changed"]]
     per_id = pd.Series(counts[df.loc[ch, "id"].to_numpy(np.int64)], index=ch)
-    return per_id.groupby(df.loc[ch, "instance"].to_numpy()).transform("sum")
+    return per_id.groupby(df.loc[ch, "place"].to_numpy()).transform("sum")
 
 
 def _pool_instances(df: pd.DataFrame, column: str, total: np.ndarray, hits: np.ndarray,
                     min_px: int = 0) -> None:
-    """Column ``column`` of the changed rows of ``df`` (in place): per ``instance``, the hits
+    """Column ``column`` of the changed rows of ``df`` (in place): per ``place``, the hits
     of all its IDs over their pixels (``total``, ``hits``: counts per ID value). Left as it is
     for an instance with fewer than ``min_px`` pixels (at least one counts as one)."""
     n, h = _instance_sums(df, total), _instance_sums(df, hits)
@@ -547,8 +548,8 @@ def _pool_instances(df: pd.DataFrame, column: str, total: np.ndarray, hits: np.n
 
 def _support_3d(df: pd.DataFrame, ids: dict[Key, np.ndarray], evidence: list[GeometryEvidence],
                 band: int) -> None:
-    """Column ``support`` (in place): per changed object (an ``instance`` of the table, all
-    its IDs together), the share of its pixels, at the poses and times where its IDs are
+    """Column ``support`` (in place): per changed object at one place (a ``place`` of the
+    table, all its IDs together), the share of its pixels, at the poses and times where its IDs are
     visible, within ``band`` pixels of the change pixels of that time of any of ``evidence``
     (:class:`gdiff.compare.geometry.GeometryEvidence` objects, after ``finish``; the first
     decides which poses were judged in 3D): how much of it changed in 3D. NaN for unchanged
@@ -585,10 +586,11 @@ def _shown_ids(ids: dict[Key, np.ndarray], key: Key, shown: dict | None) -> np.n
 
 def _photo_support(df: pd.DataFrame, ids: dict[Key, np.ndarray], keys: dict[tuple[str, int], int],
                    diffs: dict, margin: float, min_px: int, shown: dict | None = None) -> None:
-    """Columns ``photo`` and ``photo_other`` (in place): per changed object (an ``instance``,
-    all its IDs together), the share of its pixels at the key poses where the training photo
-    differs from the render of the time it was not taken at by more than ``margin`` times the
-    photo's noise floor (``diffs``: :func:`gdiff.compare.complete.key_differences`).
+    """Columns ``photo`` and ``photo_other`` (in place): per changed object at one place (a
+    ``place``, all its IDs together), the share of its pixels at the key poses where the
+    training photo differs from the render of the time it was not taken at by more than
+    ``margin`` times the photo's noise floor (``diffs``:
+    :func:`gdiff.compare.complete.key_differences`).
     ``photo``: at the key poses of the time its IDs show there (the ID map of the key frame's
     own time: an added object at the after visit's poses, where the photos show it and the
     before render what stood there). ``photo_other``: at the key poses of the other time, in
@@ -623,8 +625,8 @@ def _photo_support(df: pd.DataFrame, ids: dict[Key, np.ndarray], keys: dict[tupl
 
 def _own_view(df: pd.DataFrame, ids: dict[Key, np.ndarray], keys: dict[tuple[str, int], int],
               shown: dict | None = None) -> None:
-    """Column ``own_px`` (in place): per changed object (an ``instance``, all its IDs
-    together), its pixels at the key poses of its own time: in the ID map of the time the key
+    """Column ``own_px`` (in place): per changed object at one place (a ``place``, all its
+    IDs together), its pixels at the key poses of its own time: in the ID map of the time the key
     frame's photo was taken at (an added object at the after visit's poses), where its render
     reproduces a photo. ``shown[(path, i)]`` (optional, bool [H, W]): the pixels of the key pose
     whose surface a photo of each time shows (:func:`gdiff.compare.coverage.observed`); only
@@ -644,8 +646,8 @@ def _own_view(df: pd.DataFrame, ids: dict[Key, np.ndarray], keys: dict[tuple[str
 
 def _photo_points(df: pd.DataFrame, ids: dict[Key, np.ndarray], key_photos: list[KeyPhoto],
                   o: CompareOptions) -> None:
-    """Column ``photo_points`` (in place): per changed object (an ``instance``, all its IDs
-    together), the share of its surface points at the key poses of its own time that the
+    """Column ``photo_points`` (in place): per changed object at one place (a ``place``, all
+    its IDs together), the share of its surface points at the key poses of its own time that the
     other time's photos show differently from the key photo, more than nine in ten points of
     the unchanged surface of the same pair of photos are
     (:func:`gdiff.compare.photos.point_photo_counts`). The same 3D points in the photos of
@@ -673,19 +675,20 @@ def _photo_points(df: pd.DataFrame, ids: dict[Key, np.ndarray], key_photos: list
     _pool_instances(df, "photo_points", total, above, o.min_area)
 
 
-CANDIDATE_COLUMNS = ["instance", "ids", "types", "n_t0", "n_t1", "n_confirmed", "area",
+CANDIDATE_COLUMNS = ["instance", "place", "ids", "types", "n_t0", "n_t1", "n_confirmed", "area",
                      "x", "y", "z", "size", "support", "colour", "photo", "photo_other",
                      "photo_points", "own_px", "verdict"]
 
 
-def _candidate_row(instance: int, members: pd.DataFrame, support: float, colour: float,
-                   verdict: str, photo: float = float("nan"),
+def _candidate_row(instance: int, place: int, members: pd.DataFrame, support: float,
+                   colour: float, verdict: str, photo: float = float("nan"),
                    photo_other: float = float("nan"), photo_points: float = float("nan"),
                    own_px: float = float("nan")) -> dict:
-    """One row of ``candidates.csv`` (:data:`CANDIDATE_COLUMNS`) for a changed object made of
-    the table rows ``members``: its counts, area, place and size are its largest member's."""
+    """One row of ``candidates.csv`` (:data:`CANDIDATE_COLUMNS`) for a changed object at one
+    place, made of the table rows ``members``: its counts, area, position and size are its
+    largest member's."""
     head = members.loc[members["area"].idxmax()]
-    return dict(instance=instance, ids=" ".join(str(int(i)) for i in members["id"]),
+    return dict(instance=instance, place=place, ids=" ".join(str(int(i)) for i in members["id"]),
                 types=" ".join(sorted(set(members["type"]))), n_t0=int(head["n_t0"]),
                 n_t1=int(head["n_t1"]), n_confirmed=int(head["n_confirmed"]),
                 area=float(head["area"]), **{c: float(head[c]) for c in ("x", "y", "z", "size")},
@@ -696,20 +699,20 @@ def _candidate_row(instance: int, members: pd.DataFrame, support: float, colour:
 def _confirm_by_evidence(df: pd.DataFrame, o: CompareOptions, band: int,
                          light_changed: bool = False) -> None:
     """Keep only the changed objects of the ID comparison that the 3D evidence or their own
-    colour confirms (in place: ``changed`` set False for the others, with their ``type`` and
-    ``instance``).
+    colour confirms (in place: ``changed`` set False for the others, with their ``type``,
+    ``partner``, ``instance`` and ``place``).
 
     An ID missing at one time is a change only if the object is: the segmenter also cuts an
     unchanged surface differently at the two renders (a textured floor or wall far away, in
     pieces that differ between the times), and under a change of light the tracker cannot match
     an unchanged object's two looks (a shadow now crosses it, a warmer sun lights it), so it
     shows up as removed and added. Neither changes the surface in 3D, nor its colour relative
-    to the surface next to it, which the same light falls on. A changed object (an
-    ``instance`` of the table, all its IDs together) is kept when its ``support``
+    to the surface next to it, which the same light falls on. A changed object at one place
+    (a ``place`` of the table, all its IDs there together) is kept when its ``support``
     (:func:`_support_3d`: near the geometry evidence, and with unchanged light the flat
     evidence) is at least ``o.confirm_support``, or when its ``colour`` relative to its
     surroundings changed by at least ``o.confirm_colour`` (per ID,
-    :func:`gdiff.compare.change.surround_colour_change`; pooled over the instance weighted by
+    :func:`gdiff.compare.change.surround_colour_change`; pooled over the place weighted by
     ``n_colour``): an object swapped for one of the same shape and size changes no depth, but
     its own colour, unless the photos of both visits show its surface points alike
     (``photo_points`` below ``o.confirm_colour_points``, :func:`_photo_points`): the other
@@ -724,19 +727,26 @@ def _confirm_by_evidence(df: pd.DataFrame, o: CompareOptions, band: int,
     the photos as the other time renders it, and one the other time's model renders poorly
     from this time's poses looks in the other time's photos as this time renders it.
 
-    Every instance judged, with its figures and verdict (``kept: 3D``, ``kept: colour``,
-    ``kept: photo`` or ``dropped``), goes to ``df.attrs["candidates"]`` (columns :data:`CANDIDATE_COLUMNS`;
-    ``n_t0``, ``n_t1``, ``n_confirmed``, ``area``, ``x``, ``y``, ``z`` and ``size`` are those
-    of its largest member).
+    The two places of an object that moved are judged apart: each changed, and the evidence of
+    the one does not vouch for the other (on a sparse capture the segmenter's pieces of an
+    unchanged surface pair up as moved with real changes and with each other). When one of
+    them is dropped, the other is what it was before the pairing (``added`` or ``removed``,
+    no ``partner``, its ``place`` its ``instance``).
+
+    Every place judged, with its figures and verdict (``kept: 3D``, ``kept: colour``,
+    ``kept: photo`` or ``dropped``), goes to ``df.attrs["candidates"]`` (columns
+    :data:`CANDIDATE_COLUMNS`; ``instance`` the object it is part of; ``n_t0``, ``n_t1``,
+    ``n_confirmed``, ``area``, ``x``, ``y``, ``z`` and ``size`` are those of its largest
+    member).
     """
     ch = df.index[df["changed"]]
     df.attrs["candidates"] = pd.DataFrame(columns=CANDIDATE_COLUMNS)
     if len(ch) == 0:
         return
-    inst = df.loc[ch, "instance"].to_numpy()
+    inst = df.loc[ch, "place"].to_numpy()
     colour = np.nan_to_num(df.loc[ch, "colour"].to_numpy(float))  # NaN only where n_colour 0
     weight = df.loc[ch, "n_colour"].to_numpy(float)
-    # per changed ID, its instance's photo shares and own-view pixels (NaN where not measured)
+    # per changed ID, its place's photo shares and own-view pixels (NaN where not measured)
     photo = df.reindex(columns=["photo", "photo_other", "photo_points", "own_px"]
                        ).loc[ch].to_numpy(float)
     by_photo = o.confirm_photo > 0 and not light_changed
@@ -761,14 +771,14 @@ def _confirm_by_evidence(df: pd.DataFrame, o: CompareOptions, band: int,
                    else "dropped")
         n_alike += verdict == "dropped" and col >= o.confirm_colour and alike
         n_unseen += verdict == "dropped" and col >= o.confirm_colour and unseen and not alike
-        log.debug("instance %d: %.2f of its pixels near a change in 3D, colour change %.2f, "
+        log.debug("place %d: %.2f of its pixels near a change in 3D, colour change %.2f, "
                   "%.2f / %.2f shown changed by the photos of its own / the other time, %.2f of "
                   "its points by the other time's photos: %s", v, support, col, pho, phx, pts,
                   verdict)
         if verdict == "dropped":
             drop.extend(ch[sel])
-        rows.append(_candidate_row(int(v), df.loc[ch[sel]], support, col, verdict, pho, phx,
-                                   pts, own))
+        rows.append(_candidate_row(int(df.loc[ch[sel], "instance"].iloc[0]), int(v),
+                                   df.loc[ch[sel]], support, col, verdict, pho, phx, pts, own))
     df.attrs["candidates"] = pd.DataFrame(rows, columns=CANDIDATE_COLUMNS)
     n = len(np.unique(inst))
     n_photo = sum(r["verdict"] == "kept: photo" for r in rows)
@@ -776,7 +786,7 @@ def _confirm_by_evidence(df: pd.DataFrame, o: CompareOptions, band: int,
              "their pixels within %d px of the 3D evidence), in colour (by >= %.2f, relative "
              "to their surroundings)%s and are kept; %d IDs dropped",
              "change of light: " if light_changed else "",
-             n - len(np.unique(df.loc[drop, "instance"])), n, 100 * o.confirm_support, band,
+             n - len(np.unique(df.loc[drop, "place"])), n, 100 * o.confirm_support, band,
              o.confirm_colour,
              f" or in the training photos ({n_photo}: >= half of their pixels differ from "
              f"the other time's render by >= {o.confirm_photo:g} x the photo's noise floor, "
@@ -793,7 +803,23 @@ def _confirm_by_evidence(df: pd.DataFrame, o: CompareOptions, band: int,
                  "(compare.confirm_colour_own_view)", n_unseen, o.min_area)
     df.loc[drop, "changed"] = False
     df.loc[drop, "type"] = ""
-    df.loc[drop, "instance"] = 0
+    df.loc[drop, ["partner", "instance", "place"]] = 0
+    _unpair(df)
+
+
+def _unpair(df: pd.DataFrame) -> None:
+    """The changed IDs of ``df`` whose ``partner`` is no longer changed are what they were
+    before :func:`gdiff.compare.change._pair_moved` paired them (in place): ``added`` (seen
+    mostly at t1) or ``removed``, no ``partner``; an object that lost one of its places is
+    its other place (``instance`` = ``place``)."""
+    ch = df.index[df["changed"]]
+    still = set(df.loc[ch, "id"].astype(int))
+    lone = [i for i in ch if int(df.at[i, "partner"]) and int(df.at[i, "partner"]) not in still]
+    for i in lone:
+        df.at[i, "type"] = "added" if df.at[i, "n_t1"] > df.at[i, "n_t0"] else "removed"
+        df.at[i, "partner"] = 0
+    broken = df.loc[ch, "instance"].isin(df.loc[lone, "instance"])
+    df.loc[ch[broken.to_numpy()], "instance"] = df.loc[ch[broken.to_numpy()], "place"]
 
 
 def _replaced(df: pd.DataFrame, o: CompareOptions) -> None:
@@ -803,7 +829,7 @@ def _replaced(df: pd.DataFrame, o: CompareOptions) -> None:
     marked = df[df["id"].isin(replaced(df, o))]
     if marked.empty:
         return
-    rows = [_candidate_row(int(r["id"]), marked.loc[[i]], float(r["support"]),
+    rows = [_candidate_row(int(r["id"]), int(r["id"]), marked.loc[[i]], float(r["support"]),
                            float(r["colour"]), f"kept: replaced by {int(r['partner'])}")
             for i, r in marked.iterrows()]
     cand = df.attrs.get("candidates")
@@ -889,7 +915,8 @@ def compare(instances_dir, poses_json, out_dir, options: CompareOptions | None =
     for the depth evidence) and the key frames of ``poses_json`` (the training cameras: only
     pixels a photo of each time saw are compared, :mod:`gdiff.compare.coverage`); writes ``out_dir/<path>/<t0|t1|union>/NNNNN.png``,
     ``out_dir/changes.csv`` (id, type, partner, first/last pose, area, instance: the object a
-    changed ID is a piece of, x, y, z, size: where it is in the cameras' world frame, ...),
+    changed ID is a piece of, place: its pieces at one place, x, y, z, size: where it is in
+    the cameras' world frame, ...),
     ``out_dir/coverage.csv`` (per pose, how much of it the photos of both times let be judged:
     :func:`coverage_table`) with ``out_dir/<path>/judged/NNNNN.png``
     (:func:`gdiff.compare.coverage.judged_map`; both only when the key frames hold photos of

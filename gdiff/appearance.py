@@ -184,6 +184,17 @@ def bhattacharyya(h1, h2) -> float:
     return float(np.sqrt(h1 / h1.sum() * h2 / h2.sum()).sum())
 
 
+def median_gain(target: np.ndarray, source: np.ndarray, floor: float = 1e-3) -> np.ndarray:
+    """float32 [3]: the per-channel gain that brings ``source`` to ``target``'s exposure and
+    white balance, the ratio of their channel medians over the same pixels (``target``,
+    ``source``: float [..., 3], pixel for pixel the same surfaces; a source median below
+    ``floor`` counts as ``floor``). A change covering a minority of the pixels moves a median
+    little, where it would move a mean."""
+    t = np.asarray(target, np.float32).reshape(-1, 3)
+    s = np.asarray(source, np.float32).reshape(-1, 3)
+    return (np.median(t, 0) / np.maximum(np.median(s, 0), floor)).astype(np.float32)
+
+
 def matched_chroma(rgb0: np.ndarray, rgb1: np.ndarray
                    ) -> tuple[tuple[np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarray]]:
     """Chromaticities of two pixel-aligned views of one scene (sRGB [H, W, 3] each), with

@@ -34,6 +34,7 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
+from ..appearance import median_gain
 from ..io import linear_to_srgb
 from ..track import flow_matches
 from .photos import KeyPhoto
@@ -124,7 +125,7 @@ def photos_agree(own: KeyPhoto, other: KeyPhoto, contrast: float = 3.0, fb_tol: 
     warped = cv2.remap(b, mx, my, cv2.INTER_LINEAR)
     sa = cv2.GaussianBlur(linear_to_srgb(a), (0, 0), blur)
     sb = cv2.GaussianBlur(linear_to_srgb(warped), (0, 0), blur)
-    gain = np.median(sa[matched], 0) / np.maximum(np.median(sb[matched], 0), 1e-4)
+    gain = median_gain(sa[matched], sb[matched], 1e-4)
     diff = np.abs(sa - sb * gain).max(-1)
     floor = float(np.median(diff[matched]))
     return matched & (diff <= contrast * max(floor, 1e-4))

@@ -52,6 +52,7 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
+from ..appearance import median_gain
 from ..frames import TIMES
 from ..io import linear_to_srgb
 
@@ -76,7 +77,7 @@ def difference(photo: np.ndarray, render: np.ndarray) -> np.ndarray:
     both blurred by :data:`SMOOTH_PX`, the render scaled per channel to the photo's median."""
     p = cv2.GaussianBlur(np.asarray(photo, np.float32), (0, 0), SMOOTH_PX)
     r = cv2.GaussianBlur(np.asarray(render, np.float32), (0, 0), SMOOTH_PX)
-    gain = np.median(p.reshape(-1, 3), 0) / np.maximum(np.median(r.reshape(-1, 3), 0), 1e-3)
+    gain = median_gain(p, r)
     return np.linalg.norm(p - r * gain, axis=-1)
 
 

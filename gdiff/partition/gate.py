@@ -26,6 +26,8 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
+from ..appearance import median_gain
+
 # the two renders are compared where both draw a surface at least this opaque (the exposure match)
 GATE_MIN_ALPHA = 0.5
 # window (pixels, per 128 of the longer image side) the colour difference is averaged over
@@ -48,8 +50,7 @@ def render_difference(rgb0: np.ndarray, rgb1: np.ndarray, reference: np.ndarray)
     b = np.asarray(rgb1, np.float32)
     ref = np.asarray(reference, bool)
     if ref.sum() >= 16:
-        ratio = np.median(b[ref], 0) / np.maximum(np.median(a[ref], 0), 1e-3)
-        a = np.clip(a * ratio.astype(np.float32), 0.0, 1.0)
+        a = np.clip(a * median_gain(b[ref], a[ref]), 0.0, 1.0)
     d = np.abs(a - b).max(-1)
     k = max(3, int(round(max(d.shape) * GATE_WINDOW_PER_128 / 128.0)) | 1)
     return cv2.blur(d, (k, k))

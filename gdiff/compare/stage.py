@@ -527,7 +527,7 @@ def _id_counts(ids: dict[Key, np.ndarray], n: int = 2) -> list[np.ndarray]:
     return [np.zeros(size, np.int64) for _ in range(n)]
 
 
-def _instance_sums(df: pd.DataFrame, counts: np.ndarray) -> pd.Series:
+def _place_sums(df: pd.DataFrame, counts: np.ndarray) -> pd.Series:
     """Per changed row of ``df`` (indexed like it), the sum of ``counts`` (int, indexed by ID
     value) over every ID of its ``place`` (the pieces of its object at one place,
     :func:`gdiff.compare.change._group_instances`): the unit a change is confirmed by."""
@@ -536,12 +536,12 @@ def _instance_sums(df: pd.DataFrame, counts: np.ndarray) -> pd.Series:
     return per_id.groupby(df.loc[ch, "place"].to_numpy()).transform("sum")
 
 
-def _pool_instances(df: pd.DataFrame, column: str, total: np.ndarray, hits: np.ndarray,
+def _pool_places(df: pd.DataFrame, column: str, total: np.ndarray, hits: np.ndarray,
                     min_px: int = 0) -> None:
     """Column ``column`` of the changed rows of ``df`` (in place): per ``place``, the hits
     of all its IDs over their pixels (``total``, ``hits``: counts per ID value). Left as it is
-    for an instance with fewer than ``min_px`` pixels (at least one counts as one)."""
-    n, h = _instance_sums(df, total), _instance_sums(df, hits)
+    for a place with fewer than ``min_px`` pixels (at least one counts as one)."""
+    n, h = _place_sums(df, total), _place_sums(df, hits)
     ok = n >= min_px
     df.loc[ok.index[ok], column] = h[ok] / np.maximum(n[ok], 1)
 
@@ -549,8 +549,8 @@ def _pool_instances(df: pd.DataFrame, column: str, total: np.ndarray, hits: np.n
 def _support_3d(df: pd.DataFrame, ids: dict[Key, np.ndarray], evidence: list[GeometryEvidence],
                 band: int) -> None:
     """Column ``support`` (in place): per changed object at one place (a ``place`` of the
-    table, all its IDs together), the share of its pixels, at the poses and times where its IDs are
-    visible, within ``band`` pixels of the change pixels of that time of any of ``evidence``
+    table, all its IDs together), the share of its pixels, at the poses and times where its
+    IDs are visible, within ``band`` pixels of the change pixels of that time of any of ``evidence``
     (:class:`gdiff.compare.geometry.GeometryEvidence` objects, after ``finish``; the first
     decides which poses were judged in 3D): how much of it changed in 3D. NaN for unchanged
     IDs."""
@@ -572,7 +572,7 @@ def _support_3d(df: pd.DataFrame, ids: dict[Key, np.ndarray], evidence: list[Geo
             if hit.any():
                 g = (cv2.dilate(hit.astype(np.uint8), kernel) > 0).ravel()
                 near += np.bincount(m[g], minlength=size)
-    _pool_instances(df, "support", total, near)
+    _pool_places(df, "support", total, near)
 
 
 def _shown_ids(ids: dict[Key, np.ndarray], key: Key, shown: dict | None) -> np.ndarray | None:
@@ -619,15 +619,15 @@ def _photo_support(df: pd.DataFrame, ids: dict[Key, np.ndarray], keys: dict[tupl
             m = m.ravel()
             tot += np.bincount(m, minlength=size)
             ab += np.bincount(m[hit], minlength=size)
-    _pool_instances(df, "photo", total, above, min_px)
-    _pool_instances(df, "photo_other", total_o, above_o, min_px)
+    _pool_places(df, "photo", total, above, min_px)
+    _pool_places(df, "photo_other", total_o, above_o, min_px)
 
 
 def _own_view(df: pd.DataFrame, ids: dict[Key, np.ndarray], keys: dict[tuple[str, int], int],
               shown: dict | None = None) -> None:
     """Column ``own_px`` (in place): per changed object at one place (a ``place``, all its
-    IDs together), its pixels at the key poses of its own time: in the ID map of the time the key
-    frame's photo was taken at (an added object at the after visit's poses), where its render
+    IDs together), its pixels at the key poses of its own time: in the ID map of the time the
+    key frame's photo was taken at (an added object at the after visit's poses), where its render
     reproduces a photo. ``shown[(path, i)]`` (optional, bool [H, W]): the pixels of the key pose
     whose surface a photo of each time shows (:func:`gdiff.compare.coverage.observed`); only
     those count. 0 for an object that shows only from the other visit's poses; NaN for
@@ -640,15 +640,15 @@ def _own_view(df: pd.DataFrame, ids: dict[Key, np.ndarray], keys: dict[tuple[str
         m = _shown_ids(ids, (p, TIMES[int(t)], i), shown)
         if m is not None:
             total += np.bincount(m.ravel(), minlength=len(total))
-    own = _instance_sums(df, total)
+    own = _place_sums(df, total)
     df.loc[own.index, "own_px"] = own.astype(float)
 
 
 def _photo_points(df: pd.DataFrame, ids: dict[Key, np.ndarray], key_photos: list[KeyPhoto],
                   o: CompareOptions) -> None:
     """Column ``photo_points`` (in place): per changed object at one place (a ``place``, all
-    its IDs together), the share of its surface points at the key poses of its own time that the
-    other time's photos show differently from the key photo, more than nine in ten points of
+    its IDs together), the share of its surface points at the key poses of its own time that
+    the other time's photos show differently from the key photo, more than nine in ten points of
     the unchanged surface of the same pair of photos are
     (:func:`gdiff.compare.photos.point_photo_counts`). The same 3D points in the photos of
     both visits: an object still standing shows there as itself, however poorly the other
@@ -672,7 +672,7 @@ def _photo_points(df: pd.DataFrame, ids: dict[Key, np.ndarray], key_photos: list
                                      o.observed_depth_tol, len(total))
         total += tot
         above += ab
-    _pool_instances(df, "photo_points", total, above, o.min_area)
+    _pool_places(df, "photo_points", total, above, o.min_area)
 
 
 CANDIDATE_COLUMNS = ["instance", "place", "ids", "types", "n_t0", "n_t1", "n_confirmed", "area",
@@ -782,9 +782,10 @@ def _confirm_by_evidence(df: pd.DataFrame, o: CompareOptions, band: int,
     df.attrs["candidates"] = pd.DataFrame(rows, columns=CANDIDATE_COLUMNS)
     n = len(np.unique(inst))
     n_photo = sum(r["verdict"] == "kept: photo" for r in rows)
-    log.info("%s%d of %d changed objects of the ID comparison changed in 3D (>= %.0f %% of "
-             "their pixels within %d px of the 3D evidence), in colour (by >= %.2f, relative "
-             "to their surroundings)%s and are kept; %d IDs dropped",
+    log.info("%s%d of %d changed objects of the ID comparison (a moved one at each of its two "
+             "places apart) changed in 3D (>= %.0f %% of their pixels within %d px of the 3D "
+             "evidence), in colour (by >= %.2f, relative to their surroundings)%s and are "
+             "kept; %d IDs dropped",
              "change of light: " if light_changed else "",
              n - len(np.unique(df.loc[drop, "place"])), n, 100 * o.confirm_support, band,
              o.confirm_colour,

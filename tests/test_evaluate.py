@@ -201,7 +201,7 @@ def test_object_recall_from_before_and_after_masks(tmp_path):
     finds only the new place finds one of two. Without mask_before/mask_after the change mask's
     regions are the objects."""
     root, boxes = _scene(tmp_path)
-    before_box, after_box = (40, 4, 56, 16), boxes["000"]
+    before_box = (40, 4, 56, 16)  # its place before (after: boxes["000"])
     mb = np.zeros((H, W), bool)
     mb[before_box[1]:before_box[3], before_box[0]:before_box[2]] = True
     ma = read_mask(root / "eval" / "masks" / "000.png")

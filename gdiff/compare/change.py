@@ -908,6 +908,13 @@ def _embed(crop: np.ndarray, sl: tuple[slice, slice], shape) -> np.ndarray:
     return out
 
 
+def _kind(n0: int, n1: int) -> str:
+    """The type of a changed ID seen at ``n0`` poses at t0 and ``n1`` at t1: ``removed`` when
+    it is (almost) only seen at t0, ``added`` when only at t1, else ``moved`` (it stands at
+    both times, in another place: the tracker kept its ID)."""
+    return "removed" if n1 <= 0.1 * n0 else "added" if n0 <= 0.1 * n1 else "moved"
+
+
 def decide(stats: list[tuple[object, dict[int, dict]]], o: CompareOptions) -> pd.DataFrame:
     """Per-ID decision from the per-pose stats ``[(pose_name, pose_stats(...)), ...]``.
 
@@ -947,14 +954,7 @@ def decide(stats: list[tuple[object, dict[int, dict]]], o: CompareOptions) -> pd
     rows = []
     for t, a in sorted(acc.items()):
         changed = a["conf"] >= o.vote_frac * a["n"] and a["conf"] > 0
-        typ = ""
-        if changed:
-            if a["n1"] <= 0.1 * a["n0"]:
-                typ = "removed"
-            elif a["n0"] <= 0.1 * a["n1"]:
-                typ = "added"
-            else:
-                typ = "moved"
+        typ = _kind(a["n0"], a["n1"]) if changed else ""
         rows.append(dict(id=t, changed=bool(changed), type=typ, partner=0, n_t0=a["n0"],
                          n_t1=a["n1"], n_confirmed=a["conf"], first=a["poses"][0],
                          last=a["poses"][-1], area=float(np.mean(a["area"])),
@@ -1065,10 +1065,7 @@ def _group_instances(df: pd.DataFrame) -> None:
     records = df.loc[ch, "_pos"].tolist()
     near = ~_apart_all(records, records) & (side[:, None] == side[None, :])
     piece = link_groups(len(ch), list(zip(*np.nonzero(np.triu(near, 1)))))
-    for g in np.unique(piece):
-        members = [ch[k] for k in np.flatnonzero(piece == g)]
-        head = max(members, key=lambda i: df.at[i, "area"])
-        df.loc[members, "place"] = int(df.at[head, "id"])
+    _name_groups(df, ch, piece, "place")
     pos = {int(df.at[i, "id"]): k for k, i in enumerate(ch)}
     pairs = set()  # moved pairs between objects (groups of pieces)
     for k, a in enumerate(ch):
@@ -1077,11 +1074,31 @@ def _group_instances(df: pd.DataFrame) -> None:
             pairs.add((min(piece[k], piece[partner]), max(piece[k], piece[partner])))
     n_pairs = np.bincount(np.array(list(pairs), np.int64).ravel(), minlength=piece.max() + 1)
     links = [(a, b) for a, b in pairs if n_pairs[a] == 1 and n_pairs[b] == 1]
-    group = link_groups(int(piece.max()) + 1, links)[piece]
+    _name_groups(df, ch, link_groups(int(piece.max()) + 1, links)[piece], "instance")
+
+
+def _name_groups(df: pd.DataFrame, rows: list, group: np.ndarray, column: str) -> None:
+    """Column ``column`` of the rows ``rows`` of ``df`` (in place): per value of ``group``
+    (one per row), the ID of the group's largest member (mean area; the first on ties)."""
     for g in np.unique(group):
-        members = [ch[k] for k in np.flatnonzero(group == g)]
+        members = [rows[k] for k in np.flatnonzero(group == g)]
         head = max(members, key=lambda i: df.at[i, "area"])
-        df.loc[members, "instance"] = int(df.at[head, "id"])
+        df.loc[members, column] = int(df.at[head, "id"])
+
+
+def unpair(df: pd.DataFrame) -> None:
+    """The changed IDs of ``df`` whose ``partner`` is no longer changed are what they were
+    before :func:`_pair_moved` paired them (in place): ``added`` or ``removed``
+    (:func:`_kind`), no ``partner``; an object that lost one of its places is its other place
+    (``instance`` = ``place``)."""
+    ch = df.index[df["changed"]]
+    still = set(df.loc[ch, "id"].astype(int))
+    lone = [i for i in ch if int(df.at[i, "partner"]) and int(df.at[i, "partner"]) not in still]
+    for i in lone:
+        df.at[i, "type"] = _kind(int(df.at[i, "n_t0"]), int(df.at[i, "n_t1"]))
+        df.at[i, "partner"] = 0
+    broken = df.loc[ch, "instance"].isin(df.loc[lone, "instance"]).to_numpy()
+    df.loc[ch[broken], "instance"] = df.loc[ch[broken], "place"]
 
 
 def _median_position(by_dim: dict[int, list]) -> tuple[np.ndarray, float] | None:

@@ -35,7 +35,7 @@ from ..segment.base import ALPHA_MIN
 from ..track import world_points
 from .agree import agreeing
 from .change import (HIDDEN_SHARE, CompareOptions, appearance_change, change_masks, decide,
-                     pose_stats, replaced)
+                     pose_stats, replaced, unpair)
 from .complete import complete_key_masks, key_differences
 from .coverage import (JUDGED_DEPTH, JUDGED_SEEN, DepthView, judged_counts, judged_map, observed,
                        surface)
@@ -743,7 +743,7 @@ def _confirm_by_evidence(df: pd.DataFrame, o: CompareOptions, band: int,
     df.attrs["candidates"] = pd.DataFrame(columns=CANDIDATE_COLUMNS)
     if len(ch) == 0:
         return
-    inst = df.loc[ch, "place"].to_numpy()
+    places = df.loc[ch, "place"].to_numpy()
     colour = np.nan_to_num(df.loc[ch, "colour"].to_numpy(float))  # NaN only where n_colour 0
     weight = df.loc[ch, "n_colour"].to_numpy(float)
     # per changed ID, its place's photo shares and own-view pixels (NaN where not measured)
@@ -751,8 +751,8 @@ def _confirm_by_evidence(df: pd.DataFrame, o: CompareOptions, band: int,
                        ).loc[ch].to_numpy(float)
     by_photo = o.confirm_photo > 0 and not light_changed
     drop, rows, n_alike, n_unseen = [], [], 0, 0
-    for v in np.unique(inst):
-        sel = inst == v
+    for v in np.unique(places):
+        sel = places == v
         support = float(df.loc[ch[sel], "support"].iloc[0])
         w = weight[sel]
         col = float((colour[sel] * w).sum() / w.sum()) if w.sum() else np.nan
@@ -780,7 +780,7 @@ def _confirm_by_evidence(df: pd.DataFrame, o: CompareOptions, band: int,
         rows.append(_candidate_row(int(df.loc[ch[sel], "instance"].iloc[0]), int(v),
                                    df.loc[ch[sel]], support, col, verdict, pho, phx, pts, own))
     df.attrs["candidates"] = pd.DataFrame(rows, columns=CANDIDATE_COLUMNS)
-    n = len(np.unique(inst))
+    n = len(np.unique(places))
     n_photo = sum(r["verdict"] == "kept: photo" for r in rows)
     log.info("%s%d of %d changed objects of the ID comparison (a moved one at each of its two "
              "places apart) changed in 3D (>= %.0f %% of their pixels within %d px of the 3D "
@@ -805,22 +805,7 @@ def _confirm_by_evidence(df: pd.DataFrame, o: CompareOptions, band: int,
     df.loc[drop, "changed"] = False
     df.loc[drop, "type"] = ""
     df.loc[drop, ["partner", "instance", "place"]] = 0
-    _unpair(df)
-
-
-def _unpair(df: pd.DataFrame) -> None:
-    """The changed IDs of ``df`` whose ``partner`` is no longer changed are what they were
-    before :func:`gdiff.compare.change._pair_moved` paired them (in place): ``added`` (seen
-    mostly at t1) or ``removed``, no ``partner``; an object that lost one of its places is
-    its other place (``instance`` = ``place``)."""
-    ch = df.index[df["changed"]]
-    still = set(df.loc[ch, "id"].astype(int))
-    lone = [i for i in ch if int(df.at[i, "partner"]) and int(df.at[i, "partner"]) not in still]
-    for i in lone:
-        df.at[i, "type"] = "added" if df.at[i, "n_t1"] > df.at[i, "n_t0"] else "removed"
-        df.at[i, "partner"] = 0
-    broken = df.loc[ch, "instance"].isin(df.loc[lone, "instance"])
-    df.loc[ch[broken.to_numpy()], "instance"] = df.loc[ch[broken.to_numpy()], "place"]
+    unpair(df)
 
 
 def _replaced(df: pd.DataFrame, o: CompareOptions) -> None:

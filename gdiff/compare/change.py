@@ -179,6 +179,14 @@ class CompareOptions:
         where none of its photos was taken: on a sparse capture such a render is blurred or
         doubled, and its colour relative to its surroundings differs from the other time's by
         chance. Its shape (``confirm_support``) still counts. False: off.
+    confirm_colour_lined_up: an object kept by its colour alone (``confirm_colour``) that the ID
+        comparison found at one pose only (each of its IDs shows at that pose alone), a key
+        pose whose t0 and t1 renders do not line up (``lined_up`` false, see
+        ``lineup_share``), is dropped unless the photo taken there shows it changed too
+        (``photo`` at least one half, see ``confirm_photo``): the two models disagree there on
+        where things are, so its colour and its surroundings' are compared with another
+        surface's. Its shape (``confirm_support``) still counts. Not when the light changed
+        (moved shadows move features too). False: off.
     surround_width: width of the ring around a region whose mean colour stands for the local
         light in :func:`surround_colour_change`, as a fraction of the image's longer side.
     spread_vote: a changed object's surface is marked at every pose, also where the segmenter
@@ -200,7 +208,7 @@ class CompareOptions:
         scene's median (the share of feature matches in place, :mod:`gdiff.compare.lineup`)
         is named in the log and ``coverage.csv`` (``lined_up`` false): the models of the two
         visits disagree there on where things are, and the ID comparison's marks there are
-        uncertain. Nothing is removed. 0: not checked.
+        uncertain (see ``confirm_colour_lined_up``). 0: not checked.
     """
 
     presence_iou: float = 0.3
@@ -235,6 +243,7 @@ class CompareOptions:
     confirm_photo: float = 2.0
     confirm_colour_points: float = 0.2
     confirm_colour_own_view: bool = True
+    confirm_colour_lined_up: bool = True
     surround_width: float = 0.05
     spread_vote: float = 0.3
     complete_reach: float = 1.0

@@ -160,7 +160,7 @@ def compare_paths(ids: dict[Key, np.ndarray], frames: dict[Key, dict] | None,
                   options: CompareOptions | None = None,
                   keys: dict[tuple[str, int], int] | None = None, workers: int = 1,
                   photos: dict[tuple[str, int], np.ndarray] | None = None,
-                  alpha_min: float = ALPHA_MIN
+                  alpha_min: float = ALPHA_MIN, unlined: set[str] | None = None
                   ) -> tuple[dict[tuple[str, int], tuple[np.ndarray, np.ndarray]], pd.DataFrame]:
     """Change masks per pose from the tracked ID maps.
 
@@ -182,7 +182,10 @@ def compare_paths(ids: dict[Key, np.ndarray], frames: dict[Key, dict] | None,
     :func:`_photo_support`); last, a key frame's mask of its own time loses what a photo of
     the other visit shows alike (``photo_agree``, :mod:`gdiff.compare.agree`).
     ``alpha_min``: a pixel whose rendered opacity (the frames' ``alpha``) is below this shows no
-    surface and is not judged (the segmenter's ``alpha_min``: it gave such pixels no ID). Returns
+    surface and is not judged (the segmenter's ``alpha_min``: it gave such pixels no ID).
+    ``unlined``: the key poses (``path/NNNNN``) whose t0 and t1 renders do not line up
+    (:func:`unlined_poses`); an object found at one of them only is not kept by its colour
+    (``confirm_colour_lined_up``). Returns
     ({(path, i): (mask_t0, mask_t1)}, changes table: id,
     changed, type, partner, n_t0, n_t1, n_confirmed, first, last, area, instance, x, y, z,
     size; see :func:`gdiff.compare.change.decide`). The table's
@@ -260,7 +263,7 @@ def compare_paths(ids: dict[Key, np.ndarray], frames: dict[Key, dict] | None,
             _photo_points(df, ids, key_photos, o)
         _own_view(df, ids, keys, shown)
         if o.confirm_support > 0:
-            _confirm_by_evidence(df, o, band, light_changed)
+            _confirm_by_evidence(df, o, band, light_changed, unlined)
     else:
         df["support"] = np.nan
     for c in ("photo", "photo_other", "photo_points", "own_px"):  # the same columns always
@@ -403,15 +406,15 @@ def _with_lineup(coverage: pd.DataFrame, lined: pd.DataFrame | None = None) -> p
     return cov[COVERAGE_COLUMNS]
 
 
-def lineup_table(load, keys: dict[tuple[str, int], int], meta: dict, share: float,
-                 light_changed: bool = False) -> pd.DataFrame:
+def lineup_table(load, keys: dict[tuple[str, int], int], meta: dict, share: float
+                 ) -> pd.DataFrame:
     """Per key pose (``keys``: {(path, i): time}), how well its t0 and t1 renders line up
     (:func:`gdiff.compare.lineup.render_lineup`; ``load(key)`` returns a frame's dict with
     ``rgb``): columns ``path``, ``frame``, ``image`` (the training photo's name from ``meta``),
     ``lineup_matches``, ``lineup_in_place`` and ``lined_up`` (False below ``share`` of the
-    scene's median, :func:`gdiff.compare.lineup.poorly_lined_up`). Logs the median and names
-    the poses that do not line up (``light_changed``: the stage took the scene for a change of
-    light, whose moved shadows move features too; the log says so)."""
+    scene's median, :func:`gdiff.compare.lineup.poorly_lined_up`; NA when ``share`` is 0).
+    ``attrs["in_place_px"]``: the distance a match counts as in place within. Measured before
+    the ID comparison (:func:`unlined_poses`), reported after it (:func:`report_lineup`)."""
     rows, tol = [], float("nan")
     for p, i in sorted(keys):
         rgb0, rgb1 = load((p, "t0", i)).get("rgb"), load((p, "t1", i)).get("rgb")
@@ -423,30 +426,50 @@ def lineup_table(load, keys: dict[tuple[str, int], int], meta: dict, share: floa
                          lineup_matches=lu.matches, lineup_in_place=lu.in_place))
     df = pd.DataFrame(rows, columns=["path", "frame", "image", "lineup_matches",
                                      "lineup_in_place", "lined_up"])
+    df.attrs["in_place_px"] = tol
     if df.empty:
         return df
     bad = poorly_lined_up(df["lineup_in_place"].to_numpy(float), share)
     df["lined_up"] = pd.array(~bad, dtype="boolean") if share > 0 else pd.NA
-    if df["lineup_in_place"].isna().all():
+    return df
+
+
+def unlined_poses(lined: pd.DataFrame | None) -> set[str]:
+    """The key poses of a :func:`lineup_table` whose renders do not line up, named as the
+    changes table names poses (``path/NNNNN``)."""
+    if lined is None or lined.empty:
+        return set()
+    bad = lined[~lined["lined_up"].fillna(True).astype(bool)]  # NA: not judged
+    return {f"{r.path}/{int(r.frame):05d}" for r in bad.itertuples()}
+
+
+def report_lineup(lined: pd.DataFrame, share: float, light_changed: bool = False) -> None:
+    """Log how well the key poses' renders line up (``lined``: :func:`lineup_table`): the
+    scene's median and, as a warning, the poses that do not (``light_changed``: the stage took
+    the scene for a change of light, whose moved shadows move features too; the log says
+    so)."""
+    if lined.empty:
+        return
+    if lined["lineup_in_place"].isna().all():
         log.info("the t0 and t1 renders of the key poses share no feature match: how well they "
                  "line up is not measured")
-        return df
-    med = float(np.nanmedian(df["lineup_in_place"]))
+        return
+    med = float(np.nanmedian(lined["lineup_in_place"]))
     log.info("the t0 and t1 renders of the key poses line up on %.0f %% of their feature "
              "matches (median over %d poses; a match in place: its features within %.1f px)",
-             100 * med, len(df), tol)
-    if bad.any():
+             100 * med, len(lined), lined.attrs.get("in_place_px", float("nan")))
+    bad = lined[~lined["lined_up"].fillna(True).astype(bool)]
+    if len(bad):
         why = ("the light changed between the visits, and moved shadows and highlights move "
                "features too; or the models of the two visits disagree there on where things "
                "are" if light_changed else "the models of the two visits disagree there on "
                "where things are (check the poses of those photos)")
         log.warning("at %d key poses the t0 and t1 renders do not line up (below %.0f %% of the "
                     "median): %s. %s, and the changes marked there are uncertain",
-                    int(bad.sum()), 100 * share,
+                    len(bad), 100 * share,
                     ", ".join(f"{r.image} ({r.lineup_in_place:.0%} of {r.lineup_matches} "
                               "matches)" if r.lineup_matches else f"{r.image} (no match)"
-                              for r in df[bad].itertuples()), why[0].upper() + why[1:])
-    return df
+                              for r in bad.itertuples()), why[0].upper() + why[1:])
 
 
 def _key_voxel(get, keys: dict[tuple[str, int], int], o: CompareOptions) -> float | None:
@@ -675,6 +698,10 @@ def _photo_points(df: pd.DataFrame, ids: dict[Key, np.ndarray], key_photos: list
     _pool_places(df, "photo_points", total, above, o.min_area)
 
 
+#: an object's photos show it changed when at least this share of its pixels differ from the
+#: other time's render (``photo`` / ``photo_other``, :func:`_photo_support`)
+PHOTO_SHARE = 0.5
+
 CANDIDATE_COLUMNS = ["instance", "place", "ids", "types", "n_t0", "n_t1", "n_confirmed", "area",
                      "x", "y", "z", "size", "support", "colour", "photo", "photo_other",
                      "photo_points", "own_px", "verdict"]
@@ -697,7 +724,7 @@ def _candidate_row(instance: int, place: int, members: pd.DataFrame, support: fl
 
 
 def _confirm_by_evidence(df: pd.DataFrame, o: CompareOptions, band: int,
-                         light_changed: bool = False) -> None:
+                         light_changed: bool = False, unlined: set[str] | None = None) -> None:
     """Keep only the changed objects of the ID comparison that the 3D evidence or their own
     colour confirms (in place: ``changed`` set False for the others, with their ``type``,
     ``partner``, ``instance`` and ``place``).
@@ -718,9 +745,14 @@ def _confirm_by_evidence(df: pd.DataFrame, o: CompareOptions, band: int,
     (``photo_points`` below ``o.confirm_colour_points``, :func:`_photo_points`): the other
     time's rendered colours at a pose its photos did not see are a guess; nor when it shows at
     no key pose of its own time (``own_px`` below ``o.min_area``, :func:`_own_view`;
-    ``o.confirm_colour_own_view``): then its own colours are that time's guess. With the light
-    unchanged, it is also kept when the training photos show it
-    changed both ways (``photo`` and ``photo_other``, :func:`_photo_support`, each at least
+    ``o.confirm_colour_own_view``): then its own colours are that time's guess; nor, with the
+    light unchanged, when the ID comparison found it at one pose only and that is a key
+    pose whose two renders do not line up (in ``unlined``, :func:`unlined_poses`;
+    ``o.confirm_colour_lined_up``) and the photos of its own time do not show it changed
+    (``photo`` below one half): the two models disagree there on where things are, and its
+    colour is compared with another surface's, while the photo is measured against its own
+    view's noise floor. With the light unchanged, it is also kept when the training photos show
+    it changed both ways (``photo`` and ``photo_other``, :func:`_photo_support`, each at least
     one half; ``o.confirm_photo`` > 0) and the ID comparison confirmed it at two poses or more:
     on a sparse capture neither the depth nor the rendered colours may tell a grey mug on a
     white table, the photos do; an unchanged surface the segmenter cut differently looks in
@@ -750,7 +782,13 @@ def _confirm_by_evidence(df: pd.DataFrame, o: CompareOptions, band: int,
     photo = df.reindex(columns=["photo", "photo_other", "photo_points", "own_px"]
                        ).loc[ch].to_numpy(float)
     by_photo = o.confirm_photo > 0 and not light_changed
-    drop, rows, n_alike, n_unseen = [], [], 0, 0
+    drop, rows, n_alike, n_unseen, n_unlined = [], [], 0, 0, 0
+    # per changed ID: shown, and confirmed, at one pose only, one whose renders do not line up
+    lone = np.zeros(len(ch), bool)
+    if o.confirm_colour_lined_up and unlined and not light_changed:
+        m = df.loc[ch]
+        lone = ((m["n_confirmed"] == 1) & (m["first"] == m["last"])
+                & m["first"].isin(unlined)).to_numpy()
     for v in np.unique(places):
         sel = places == v
         support = float(df.loc[ch[sel], "support"].iloc[0])
@@ -765,12 +803,20 @@ def _confirm_by_evidence(df: pd.DataFrame, o: CompareOptions, band: int,
         # the photo's word counts for an object confirmed at more than one pose: one pose's
         # render, against the photo next to it, may differ where the fit is poor
         several = int(df.loc[ch[sel], "n_confirmed"].max()) >= 2
+        # ... and unless one pose alone shows it (all its IDs there, nowhere else), where the
+        # two models do not line up, and the photo taken there does not show it changed either
+        unlined_only = (bool(lone[sel].all()) and df.loc[ch[sel], "first"].nunique() == 1
+                        and not pho >= PHOTO_SHARE)
         verdict = ("kept: 3D" if support >= o.confirm_support else
-                   "kept: colour" if col >= o.confirm_colour and not alike and not unseen else
-                   "kept: photo" if by_photo and several and pho >= 0.5 and phx >= 0.5
+                   "kept: colour" if (col >= o.confirm_colour and not alike and not unseen
+                                      and not unlined_only) else
+                   "kept: photo" if (by_photo and several and pho >= PHOTO_SHARE
+                                     and phx >= PHOTO_SHARE)
                    else "dropped")
         n_alike += verdict == "dropped" and col >= o.confirm_colour and alike
         n_unseen += verdict == "dropped" and col >= o.confirm_colour and unseen and not alike
+        n_unlined += (verdict == "dropped" and col >= o.confirm_colour and unlined_only
+                      and not unseen and not alike)
         log.debug("place %d: %.2f of its pixels near a change in 3D, colour change %.2f, "
                   "%.2f / %.2f shown changed by the photos of its own / the other time, %.2f of "
                   "its points by the other time's photos: %s", v, support, col, pho, phx, pts,
@@ -802,6 +848,11 @@ def _confirm_by_evidence(df: pd.DataFrame, o: CompareOptions, band: int,
                  "their own time (on fewer than %d pixels), only in that time's render from the "
                  "other visit's poses, where none of its photos was taken "
                  "(compare.confirm_colour_own_view)", n_unseen, o.min_area)
+    if n_unlined:
+        log.info("%d objects whose colour changed were dropped: the ID comparison found them at "
+                 "one pose only, a key pose whose t0 and t1 renders do not line up, and the "
+                 "photo taken there does not show them changed "
+                 "(compare.confirm_colour_lined_up)", n_unlined)
     df.loc[drop, "changed"] = False
     df.loc[drop, "type"] = ""
     df.loc[drop, ["partner", "instance", "place"]] = 0
@@ -957,8 +1008,12 @@ def compare(instances_dir, poses_json, out_dir, options: CompareOptions | None =
                                    or o.confirm_photo > 0 or o.photo_agree > 0):
         photos = _key_photos_at_one_exposure(keys, meta, Path(photo_root), load,
                                              index.get("alpha_min", ALPHA_MIN))
+    # how well the two times' renders line up at the key poses: before the ID comparison, whose
+    # colour test does not trust a pose that does not (compare.confirm_colour_lined_up)
+    lined = lineup_table(load, keys, meta, o.lineup_share) if o.lineup_share > 0 else None
     masks, df = compare_paths(ids, load, options, keys=keys, workers=workers, photos=photos,
-                              alpha_min=index.get("alpha_min", ALPHA_MIN))
+                              alpha_min=index.get("alpha_min", ALPHA_MIN),
+                              unlined=unlined_poses(lined))
     root = out_dir.parent
     judged = df.attrs.get("judged", {})
     rows = []
@@ -980,9 +1035,9 @@ def compare(instances_dir, poses_json, out_dir, options: CompareOptions | None =
                              mask_union=rel["union"], judged=rel["judged"],
                              light_changed=bool(df.attrs.get("light_changed"))))
     coverage = df.attrs.get("coverage", pd.DataFrame(columns=COVERAGE_COLUMNS))
-    if o.lineup_share > 0:
-        coverage = _with_lineup(coverage, lineup_table(load, keys, meta, o.lineup_share,
-                                                       bool(df.attrs.get("light_changed"))))
+    if lined is not None:
+        report_lineup(lined, o.lineup_share, bool(df.attrs.get("light_changed")))
+        coverage = _with_lineup(coverage, lined)
     write_csv(out_dir / "coverage.csv", coverage)
     keyed = coverage.dropna(subset=["key", "not_judged_frac"])
     if len(keyed):

@@ -434,13 +434,17 @@ def lineup_table(load, keys: dict[tuple[str, int], int], meta: dict, share: floa
     return df
 
 
+def _not_lined_up(lined: pd.DataFrame) -> pd.DataFrame:
+    """The rows of a :func:`lineup_table` whose renders do not line up (NA: not judged)."""
+    return lined[~lined["lined_up"].fillna(True).astype(bool)]
+
+
 def unlined_poses(lined: pd.DataFrame | None) -> set[str]:
     """The key poses of a :func:`lineup_table` whose renders do not line up, named as the
     changes table names poses (``path/NNNNN``)."""
     if lined is None or lined.empty:
         return set()
-    bad = lined[~lined["lined_up"].fillna(True).astype(bool)]  # NA: not judged
-    return {f"{r.path}/{int(r.frame):05d}" for r in bad.itertuples()}
+    return {f"{r.path}/{int(r.frame):05d}" for r in _not_lined_up(lined).itertuples()}
 
 
 def report_lineup(lined: pd.DataFrame, share: float, light_changed: bool = False) -> None:
@@ -458,7 +462,7 @@ def report_lineup(lined: pd.DataFrame, share: float, light_changed: bool = False
     log.info("the t0 and t1 renders of the key poses line up on %.0f %% of their feature "
              "matches (median over %d poses; a match in place: its features within %.1f px)",
              100 * med, len(lined), lined.attrs.get("in_place_px", float("nan")))
-    bad = lined[~lined["lined_up"].fillna(True).astype(bool)]
+    bad = _not_lined_up(lined)
     if len(bad):
         why = ("the light changed between the visits, and moved shadows and highlights move "
                "features too; or the models of the two visits disagree there on where things "

@@ -134,7 +134,7 @@ class _JudgePose:
             photo_check = partial(region_photos_differ, points=tuple(pts), depths=(z0, z1),
                                   photos=self.key_photos, depth_tol=o.observed_depth_tol,
                                   contrast=o.flat_photo_contrast)
-        stats = (f"{p}/{i:05d}", pose_stats(
+        stats = (pose_name(p, i), pose_stats(
             self.ids[(p, "t0", i)], self.ids[(p, "t1", i)], o, f0.get("rgb"), f1.get("rgb"),
             z0, z1, focal=cam.fx if cam is not None else None,
             camera=cam, observed0=obs[0], observed1=obs[1], seen0=shown[0], seen1=shown[1],
@@ -154,6 +154,11 @@ class _JudgePose:
                                                              o.evidence_open, known, differ),
                                     points=tuple(pts), stride=self.flat_stride)
         return stats, judged, g_rec, f_rec
+
+
+def pose_name(path: str, frame: int) -> str:
+    """A pose's name in the changes table (``first``, ``last``) and the logs: ``path/NNNNN``."""
+    return f"{path}/{int(frame):05d}"
 
 
 def compare_paths(ids: dict[Key, np.ndarray], frames: dict[Key, dict] | None,
@@ -422,7 +427,7 @@ def lineup_table(load, keys: dict[tuple[str, int], int], meta: dict, share: floa
             continue
         lu = render_lineup(rgb0, rgb1)
         tol = in_place_px(rgb0.shape)
-        rows.append(dict(path=p, frame=int(i), image=meta[p][i].get("image") or f"{p}/{i:05d}",
+        rows.append(dict(path=p, frame=int(i), image=meta[p][i].get("image") or pose_name(p, i),
                          lineup_matches=lu.matches, lineup_in_place=lu.in_place))
     df = pd.DataFrame(rows, columns=["path", "frame", "image", "lineup_matches",
                                      "lineup_in_place", "lined_up"])
@@ -444,7 +449,7 @@ def unlined_poses(lined: pd.DataFrame | None) -> set[str]:
     changes table names poses (``path/NNNNN``)."""
     if lined is None or lined.empty:
         return set()
-    return {f"{r.path}/{int(r.frame):05d}" for r in _not_lined_up(lined).itertuples()}
+    return {pose_name(r.path, int(r.frame)) for r in _not_lined_up(lined).itertuples()}
 
 
 def report_lineup(lined: pd.DataFrame, share: float, light_changed: bool = False) -> None:
@@ -787,12 +792,7 @@ def _confirm_by_evidence(df: pd.DataFrame, o: CompareOptions, band: int,
                        ).loc[ch].to_numpy(float)
     by_photo = o.confirm_photo > 0 and not light_changed
     drop, rows, n_alike, n_unseen, n_unlined = [], [], 0, 0, 0
-    # per changed ID: shown, and confirmed, at one pose only, one whose renders do not line up
-    lone = np.zeros(len(ch), bool)
-    if o.confirm_colour_lined_up and unlined and not light_changed:
-        m = df.loc[ch]
-        lone = ((m["n_confirmed"] == 1) & (m["first"] == m["last"])
-                & m["first"].isin(unlined)).to_numpy()
+    by_lineup = o.confirm_colour_lined_up and bool(unlined) and not light_changed
     for v in np.unique(places):
         sel = places == v
         support = float(df.loc[ch[sel], "support"].iloc[0])
@@ -809,8 +809,9 @@ def _confirm_by_evidence(df: pd.DataFrame, o: CompareOptions, band: int,
         several = int(df.loc[ch[sel], "n_confirmed"].max()) >= 2
         # ... and unless one pose alone shows it (all its IDs there, nowhere else), where the
         # two models do not line up, and the photo taken there does not show it changed either
-        unlined_only = (bool(lone[sel].all()) and df.loc[ch[sel], "first"].nunique() == 1
-                        and not pho >= PHOTO_SHARE)
+        seen_at = (set(df.loc[ch[sel], "first"]) | set(df.loc[ch[sel], "last"])
+                   if by_lineup else set())
+        unlined_only = len(seen_at) == 1 and seen_at <= unlined and not pho >= PHOTO_SHARE
         verdict = ("kept: 3D" if support >= o.confirm_support else
                    "kept: colour" if (col >= o.confirm_colour and not alike and not unseen
                                       and not unlined_only) else

@@ -739,6 +739,43 @@ def test_resume_gives_the_same_model_as_an_uninterrupted_run(tiny_fit, tmp_path,
                                rtol=1e-4)
 
 
+def test_blend_weight_cache_keeps_the_training_size_while_it_fits_its_budget(tiny_fit, caplog):
+    """frozen_scale null: the key views' weights are cached at their training size when they
+    fit in cache_max_mb, else at the scale whose pixels fit; a number fixes the scale."""
+    from gdiff.partition import PartitionModel, _load_mask, read_key_views
+    from gdiff.partition.train import _cache_weights
+    from gdiff.splat.model import load_model
+
+    res, scene_dir = tiny_fit
+    views = read_key_views(res / "change" / "keyframes.csv", res / "poses" / "cameras.json",
+                           scene_dir, max_side=64)[::3]
+    data = [{"camera": v.camera, "time": v.time,
+             "target": torch.from_numpy(_load_mask(v.target, v.camera))} for v in views]
+    fit = load_model(res / "fit" / "model.pt", "cpu")
+    pm = PartitionModel(fit, ChangeHead(len(fit), 16, seed=0), data[0]["camera"])
+    size = (views[0].camera.width, views[0].camera.height)
+
+    def cached(scale, max_mb):
+        _, out = _cache_weights(pm, data, scale, max_mb)
+        assert len(out) == len(data)
+        for bw, target, _ in out:
+            assert tuple(target.shape) == (bw.height, bw.width)
+        return (out[0][0].width, out[0][0].height), sum(w[0].nbytes for w in out)
+
+    full, full_bytes = cached(None, 1024.0)
+    assert full == size
+    assert cached(1.0, 1e-6) == (full, full_bytes)  # a fixed scale ignores the budget
+    budget = full_bytes / 4 / 2**20  # a quarter: about half the width and height fit
+    with caplog.at_level("INFO", logger="gdiff.partition"):
+        (w, h), nbytes = cached(None, budget)
+    assert w < size[0] and h < size[1]
+    assert abs(w / size[0] - 0.5) < 0.15, (w, size)
+    assert nbytes < 1.3 * budget * 2**20
+    assert "over partition.cache_max_mb" in caplog.text
+    half, _ = cached(0.5, 1024.0)
+    assert half == (round(size[0] / 2), round(size[1] / 2))
+
+
 def test_cli_renders_change_map_at_an_arbitrary_pose(tiny_partition, tmp_path, capsys):
     from scipy.spatial.transform import Rotation
 

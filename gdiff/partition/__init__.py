@@ -39,8 +39,9 @@ L3d (kNN KL), plus the fit stage's L1 + L_TV when the geometry is fine-tuned too
   per Gaussian (:func:`blended_change_logit`, exact because the head is affine) instead of
   deforming the model and rasterizing colour + encodings forward and backward; L1 and L_TV
   are constants there. The encodings converge in this phase. The cache is what bounds the
-  stage's memory, so it is kept compact: key views at ``frozen_scale`` of the training size
-  (targets area-averaged), pairs grouped by pixel (a pair stores an int32 Gaussian index and
+  stage's memory, so it is kept compact: key views at their training size while the cache
+  fits in ``cache_max_mb``, else at the scale whose pixels fit (targets area-averaged;
+  ``frozen_scale`` fixes the scale), pairs grouped by pixel (a pair stores an int32 Gaussian index and
   a float16 weight), a pixel's faintest pairs dropped up to a small total weight, computed in
   bands of rows (bounded transient memory); it is released before the joint phase. With
   ``geometry_lr_scale`` > 0 the remaining steps fine-tune the fitted Gaussians too (the

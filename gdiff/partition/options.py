@@ -34,9 +34,13 @@ class PartitionOptions:
                                       # weights: fast); later steps also fine-tune them with
                                       # L1 + L_TV (render every step). >= iterations or
                                       # geometry_lr_scale 0 = frozen throughout
-    frozen_scale: float = 0.5         # size of the key views in the frozen phase relative to the
-                                      # training size (cached blend weights: 0.5 = a quarter
-                                      # of the pixels, of the memory and of the time per step)
+    frozen_scale: float | None = None  # size of the key views in the frozen phase relative to
+                                      # the training size (cached blend weights: 0.5 = a quarter
+                                      # of the pixels, of the memory and of the time per step);
+                                      # None = the training size when the cache fits in
+                                      # cache_max_mb, else the scale at which it does
+    cache_max_mb: float = 1024.0      # memory the cached blend weights may take when
+                                      # frozen_scale is None (MB)
     lambda_tv: float | None = None    # weight of the HexPlane TV; None = the fit stage's value
     threshold: float | None = None    # probability above which a pixel / Gaussian is "changed";
                                       # None = from the key views: 0.5 unless the threshold that
@@ -75,7 +79,9 @@ class PartitionOptions:
             raise ValueError("max_side must be >= 0 (0 = full resolution)")
         if self.frozen_iterations < 0 or self.geometry_lr_scale < 0:
             raise ValueError("frozen_iterations and geometry_lr_scale must be >= 0")
-        if not 0.0 < self.frozen_scale <= 1.0:
-            raise ValueError("frozen_scale must lie in (0, 1]")
+        if self.frozen_scale is not None and not 0.0 < self.frozen_scale <= 1.0:
+            raise ValueError("frozen_scale must lie in (0, 1] (or be null)")
+        if not self.cache_max_mb > 0:
+            raise ValueError("cache_max_mb must be > 0")
         if self.checkpoint_every < 1 or self.log_every < 1:
             raise ValueError("checkpoint_every and log_every must be >= 1")

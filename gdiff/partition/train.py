@@ -9,6 +9,7 @@ from __future__ import annotations
 import dataclasses
 import hashlib
 import logging
+import math
 import resource
 import shutil
 import time as _time
@@ -188,7 +189,7 @@ def fine_tune(pm: PartitionModel, data: list[dict], opts: PartitionOptions, ckdi
     opt = torch.optim.Adam(_param_groups(pm, opts, extent), eps=1e-15)
     frozen_g = weights = None
     if start < frozen_until:
-        frozen_g, weights = _cache_weights(pm, data, opts.frozen_scale)
+        frozen_g, weights = _cache_weights(pm, data, opts.frozen_scale, opts.cache_max_mb)
     if ck is not None:
         opt.load_state_dict(blob["optimizer"])
     last_ck = str(ck) if ck is not None else "none"
@@ -260,25 +261,53 @@ def fine_tune(pm: PartitionModel, data: list[dict], opts: PartitionOptions, ckdi
 CACHE_TOLERANCE = 1e-3
 
 
-def _cache_weights(pm: PartitionModel, data: list[dict], scale: float = 1.0):
+def _cache_weights(pm: PartitionModel, data: list[dict], scale: float | None = None,
+                   max_mb: float = 1024.0):
     """Frozen geometry: the activated Gaussians per training time (no grad) and, for every view
     in ``data`` (same order), ``(BlendWeights, target, weight)`` with the camera, target and
     BCE weight resized by ``scale`` (area averaging: soft targets at the edges); the weights
-    are float16, faint pairs dropped up to :data:`CACHE_TOLERANCE` per pixel."""
+    are float16, faint pairs dropped up to :data:`CACHE_TOLERANCE` per pixel.
+
+    ``scale`` None: the views at their training size when all their weights fit in ``max_mb``
+    MB; once they do not, the pairs counted so far, extrapolated to all views, give the scale
+    whose pixels fit (the pairs of a view grow with its pixel count) and the views are cached
+    again at that scale."""
     t0 = _time.perf_counter()
     with torch.no_grad():
         gs = {t: pm.fit.at_time(t) for t in sorted({float(v["time"]) for v in data})}
-    out = []
-    for v in progress(data, desc="partition weights"):
+    budget = max_mb * 2**20
+    how = f"partition.frozen_scale {scale:g}" if scale is not None else ""
+    out = _view_weights(gs, data, 1.0 if scale is None else scale,
+                        budget if scale is None else None)
+    if isinstance(out, float):  # over the budget at the training size: ``out`` bytes expected
+        scale = max(0.01, math.floor(100 * math.sqrt(budget / out)) / 100)
+        how = (f"the training size would take about {out / 2**20:.0f} MB, over "
+               f"partition.cache_max_mb ({max_mb:g})")
+        out = _view_weights(gs, data, scale)
+    elif scale is None:
+        scale, how = 1.0, f"the training size fits in partition.cache_max_mb ({max_mb:g})"
+    log.info("blend weights of %d views at %dx%d (scale %.2f: %s): %d pairs, %.0f MB, %.1f s",
+             len(data), out[0][0].width, out[0][0].height, scale, how,
+             sum(len(w[0].gid) for w in out), sum(w[0].nbytes for w in out) / 2**20,
+             _time.perf_counter() - t0)
+    _log_phase("blend weights", len(data))
+    return gs, out
+
+
+def _view_weights(gs: dict, data: list[dict], scale: float, max_bytes: float | None = None):
+    """The ``(BlendWeights, target, weight)`` of every view at ``scale`` (see
+    :func:`_cache_weights`); with ``max_bytes``, as soon as the views so far take more, their
+    bytes extrapolated to all views (a float) instead."""
+    out, nbytes = [], 0
+    for i, v in enumerate(progress(data, desc="partition weights")):
         cam = v["camera"] if scale == 1.0 else v["camera"].scaled(scale)
         bw = blend_weights(gs[float(v["time"])], cam, tolerance=CACHE_TOLERANCE,
                            dtype=torch.float16)
         out.append((bw, _resized(v["target"], cam), _resized(v.get("weight"), cam)))
-    log.info("blend weights of %d views at %dx%d: %d pairs, %.0f MB, %.1f s", len(data),
-             out[0][0].width, out[0][0].height, sum(len(w[0].gid) for w in out),
-             sum(w[0].nbytes for w in out) / 2**20, _time.perf_counter() - t0)
-    _log_phase("blend weights", len(data))
-    return gs, out
+        nbytes += bw.nbytes
+        if max_bytes is not None and nbytes > max_bytes:
+            return float(nbytes * len(data) / (i + 1))
+    return out
 
 
 def _resized(x: torch.Tensor | None, cam) -> torch.Tensor | None:

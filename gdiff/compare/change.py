@@ -1041,7 +1041,7 @@ def replaced(df: pd.DataFrame, o: CompareOptions) -> list[int]:
         if np.isfinite(np.r_[here[0], there[0], s0, s1]).all() and \
                 max(s0, s1) <= SIZE_RATIO * min(s0, s1) and not _apart(here, there):
             df.at[i, "changed"], df.at[i, "type"] = True, typ
-            df.at[i, "partner"], df.at[i, "instance"], df.at[i, "place"] = h, t, t
+            df.loc[i, ["partner", "instance", "place"]] = [h, t, t]  # may add the columns
             marked.append(t)
     return marked
 

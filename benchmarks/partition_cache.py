@@ -39,7 +39,9 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("results", type=Path, help="results/<scene> with fit/ and poses/")
     ap.add_argument("--step", type=int, default=10, help="every step-th training view")
-    ap.add_argument("--scale", type=float, default=PartitionOptions().frozen_scale)
+    ap.add_argument("--scale", type=float, default=PartitionOptions().frozen_scale or 1.0,
+                    help="cache scale (default: the training size, which the stage keeps while "
+                         "its cache fits in partition.cache_max_mb)")
     ap.add_argument("--max-side", type=int, default=None,
                     help="training size (default: the fit's working size)")
     args = ap.parse_args(argv)

@@ -30,7 +30,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from gdiff.cameras import load_cameras  # noqa: E402
-from gdiff.partition import PartitionOptions, blend_weights, render_blended  # noqa: E402
+from gdiff.partition import blend_weights, render_blended  # noqa: E402
 from gdiff.partition.train import CACHE_TOLERANCE  # noqa: E402
 from gdiff.splat.model import load_model  # noqa: E402
 
@@ -39,7 +39,7 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("results", type=Path, help="results/<scene> with fit/ and poses/")
     ap.add_argument("--step", type=int, default=10, help="every step-th training view")
-    ap.add_argument("--scale", type=float, default=PartitionOptions().frozen_scale or 1.0,
+    ap.add_argument("--scale", type=float, default=1.0,
                     help="cache scale (default: the training size, which the stage keeps while "
                          "its cache fits in partition.cache_max_mb)")
     ap.add_argument("--max-side", type=int, default=None,

@@ -811,7 +811,8 @@ def _confirm_by_evidence(df: pd.DataFrame, o: CompareOptions, band: int,
         # two models do not line up, and the photo taken there does not show it changed either
         seen_at = (set(df.loc[ch[sel], "first"]) | set(df.loc[ch[sel], "last"])
                    if by_lineup else set())
-        unlined_only = len(seen_at) == 1 and seen_at <= unlined and not pho >= PHOTO_SHARE
+        unlined_only = (len(seen_at) == 1 and seen_at <= unlined
+                        and not pho >= PHOTO_SHARE)  # NaN (no photo measure): not shown
         verdict = ("kept: 3D" if support >= o.confirm_support else
                    "kept: colour" if (col >= o.confirm_colour and not alike and not unseen
                                       and not unlined_only) else

@@ -43,8 +43,8 @@ L3d (kNN KL), plus the fit stage's L1 + L_TV when the geometry is fine-tuned too
   fits in ``cache_max_mb``, else at the scale whose pixels fit (targets area-averaged;
   ``frozen_scale`` fixes the scale), pairs grouped by pixel (a pair stores an int32 Gaussian
   index and a float16 weight), a pixel's faintest pairs dropped up to a small total weight,
-  computed in bands of rows (bounded transient memory); it is released before the joint phase. With
-  ``geometry_lr_scale`` > 0 the remaining steps fine-tune the fitted Gaussians too (the
+  computed in bands of rows (bounded transient memory); it is released before the joint
+  phase. With ``geometry_lr_scale`` > 0 the remaining steps fine-tune the fitted Gaussians too (the
   paper's total loss, at ``geometry_lr_scale`` x the fit's final learning rates), rasterizing
   colour + the 1-channel change logit, so Gaussians that straddle a changed object's outline
   adapt to the masks. That fits the key views' masks more closely, errors included: the

@@ -275,17 +275,19 @@ def _cache_weights(pm: PartitionModel, data: list[dict], scale: float | None = N
     t0 = _time.perf_counter()
     with torch.no_grad():
         gs = {t: pm.fit.at_time(t) for t in sorted({float(v["time"]) for v in data})}
-    budget = max_mb * 2**20
-    how = f"partition.frozen_scale {scale:g}" if scale is not None else ""
-    out = _view_weights(gs, data, 1.0 if scale is None else scale,
-                        budget if scale is None else None)
-    if isinstance(out, float):  # over the budget at the training size: ``out`` bytes expected
-        scale = max(0.01, math.floor(100 * math.sqrt(budget / out)) / 100)
-        how = (f"the training size would take about {out / 2**20:.0f} MB, over "
-               f"partition.cache_max_mb ({max_mb:g})")
-        out = _view_weights(gs, data, scale)
-    elif scale is None:
-        scale, how = 1.0, f"the training size fits in partition.cache_max_mb ({max_mb:g})"
+    if scale is not None:
+        out, _ = _view_weights(gs, data, scale)
+        how = f"partition.frozen_scale {scale:g}"
+    else:
+        budget = max_mb * 2**20
+        out, expected = _view_weights(gs, data, 1.0, budget)
+        if out is None:  # over the budget at the training size
+            scale = max(0.01, math.floor(100 * math.sqrt(budget / expected)) / 100)
+            how = (f"the training size would take about {expected / 2**20:.0f} MB, over "
+                   f"partition.cache_max_mb ({max_mb:g})")
+            out, _ = _view_weights(gs, data, scale)
+        else:
+            scale, how = 1.0, f"the training size fits in partition.cache_max_mb ({max_mb:g})"
     log.info("blend weights of %d views at %dx%d (scale %.2f: %s): %d pairs, %.0f MB, %.1f s",
              len(data), out[0][0].width, out[0][0].height, scale, how,
              sum(len(w[0].gid) for w in out), sum(w[0].nbytes for w in out) / 2**20,
@@ -294,10 +296,11 @@ def _cache_weights(pm: PartitionModel, data: list[dict], scale: float | None = N
     return gs, out
 
 
-def _view_weights(gs: dict, data: list[dict], scale: float, max_bytes: float | None = None):
-    """The ``(BlendWeights, target, weight)`` of every view at ``scale`` (see
-    :func:`_cache_weights`); with ``max_bytes``, as soon as the views so far take more, their
-    bytes extrapolated to all views (a float) instead."""
+def _view_weights(gs: dict, data: list[dict], scale: float,
+                  max_bytes: float | None = None) -> tuple[list | None, float]:
+    """``(views, nbytes)``: the ``(BlendWeights, target, weight)`` of every view at ``scale``
+    (see :func:`_cache_weights`) and their bytes; with ``max_bytes``, as soon as the views so
+    far take more, ``(None, their bytes extrapolated to all views)``."""
     out, nbytes = [], 0
     for i, v in enumerate(progress(data, desc="partition weights")):
         cam = v["camera"] if scale == 1.0 else v["camera"].scaled(scale)
@@ -306,8 +309,8 @@ def _view_weights(gs: dict, data: list[dict], scale: float, max_bytes: float | N
         out.append((bw, _resized(v["target"], cam), _resized(v.get("weight"), cam)))
         nbytes += bw.nbytes
         if max_bytes is not None and nbytes > max_bytes:
-            return float(nbytes * len(data) / (i + 1))
-    return out
+            return None, float(nbytes * len(data) / (i + 1))
+    return out, float(nbytes)
 
 
 def _resized(x: torch.Tensor | None, cam) -> torch.Tensor | None:

@@ -21,8 +21,10 @@ def test_lint_clean():
     assert "good condition" in r.stdout + r.stderr
 
 
-def test_dry_run_default_demo_lists_every_stage():
-    r = smk("-n")
+def test_dry_run_default_demo_lists_every_stage(tmp_path):
+    # in an empty working folder: the results of a `make demo` in the checkout would leave
+    # nothing to do there
+    r = smk("-s", str(ROOT / "Snakefile"), "-d", str(tmp_path), "-n", cwd=tmp_path)
     assert r.returncode == 0, r.stdout + r.stderr
     for rule in ("synth", "manifest", "poses", "fit", "interpolate", "render", "segment",
                  "compare", "partition", "evaluate", "summary"):

@@ -791,7 +791,9 @@ def _confirm_by_evidence(df: pd.DataFrame, o: CompareOptions, band: int,
     photo = df.reindex(columns=["photo", "photo_other", "photo_points", "own_px"]
                        ).loc[ch].to_numpy(float)
     by_photo = o.confirm_photo > 0 and not light_changed
-    drop, rows, n_alike, n_unseen, n_unlined = [], [], 0, 0, 0
+    drop, rows = [], []
+    # objects whose colour changed but were dropped, by the first reason colour did not count
+    vetoed = dict.fromkeys(("alike", "unseen", "unlined"), 0)
     by_lineup = o.confirm_colour_lined_up and bool(unlined) and not light_changed
     for v in np.unique(places):
         sel = places == v
@@ -804,25 +806,24 @@ def _confirm_by_evidence(df: pd.DataFrame, o: CompareOptions, band: int,
         # ... and unless it shows only where its time's photos were not taken (NaN: not
         # counted, it counts)
         unseen = o.confirm_colour_own_view and own < o.min_area
-        # the photo's word counts for an object confirmed at more than one pose: one pose's
-        # render, against the photo next to it, may differ where the fit is poor
-        several = int(df.loc[ch[sel], "n_confirmed"].max()) >= 2
         # ... and unless one pose alone shows it (all its IDs there, nowhere else), where the
         # two models do not line up, and the photo taken there does not show it changed either
         seen_at = (set(df.loc[ch[sel], "first"]) | set(df.loc[ch[sel], "last"])
                    if by_lineup else set())
         unlined_only = (len(seen_at) == 1 and seen_at <= unlined
                         and not pho >= PHOTO_SHARE)  # NaN (no photo measure): not shown
+        # the photo's word counts for an object confirmed at more than one pose: one pose's
+        # render, against the photo next to it, may differ where the fit is poor
+        several = int(df.loc[ch[sel], "n_confirmed"].max()) >= 2
+        veto = ("alike" if alike else "unseen" if unseen else "unlined" if unlined_only
+                else None)
         verdict = ("kept: 3D" if support >= o.confirm_support else
-                   "kept: colour" if (col >= o.confirm_colour and not alike and not unseen
-                                      and not unlined_only) else
+                   "kept: colour" if col >= o.confirm_colour and veto is None else
                    "kept: photo" if (by_photo and several and pho >= PHOTO_SHARE
                                      and phx >= PHOTO_SHARE)
                    else "dropped")
-        n_alike += verdict == "dropped" and col >= o.confirm_colour and alike
-        n_unseen += verdict == "dropped" and col >= o.confirm_colour and unseen and not alike
-        n_unlined += (verdict == "dropped" and col >= o.confirm_colour and unlined_only
-                      and not unseen and not alike)
+        if verdict == "dropped" and col >= o.confirm_colour:
+            vetoed[veto] += 1
         log.debug("place %d: %.2f of its pixels near a change in 3D, colour change %.2f, "
                   "%.2f / %.2f shown changed by the photos of its own / the other time, %.2f of "
                   "its points by the other time's photos: %s", v, support, col, pho, phx, pts,
@@ -845,20 +846,21 @@ def _confirm_by_evidence(df: pd.DataFrame, o: CompareOptions, band: int,
              f"the other time's render by >= {o.confirm_photo:g} x the photo's noise floor, "
              f"at the key poses of both times)"
              if by_photo else "", len(drop))
-    if n_alike:
+    if vetoed["alike"]:
         log.info("%d objects whose colour changed were dropped: fewer than %.0f %% of their "
                  "surface points look different in the photos of the other visit "
-                 "(compare.confirm_colour_points)", n_alike, 100 * o.confirm_colour_points)
-    if n_unseen:
+                 "(compare.confirm_colour_points)", vetoed["alike"],
+                 100 * o.confirm_colour_points)
+    if vetoed["unseen"]:
         log.info("%d objects whose colour changed were dropped: they show at no key pose of "
                  "their own time (on fewer than %d pixels), only in that time's render from the "
                  "other visit's poses, where none of its photos was taken "
-                 "(compare.confirm_colour_own_view)", n_unseen, o.min_area)
-    if n_unlined:
+                 "(compare.confirm_colour_own_view)", vetoed["unseen"], o.min_area)
+    if vetoed["unlined"]:
         log.info("%d objects whose colour changed were dropped: the ID comparison found them at "
                  "one pose only, a key pose whose t0 and t1 renders do not line up, and the "
                  "photo taken there does not show them changed "
-                 "(compare.confirm_colour_lined_up)", n_unlined)
+                 "(compare.confirm_colour_lined_up)", vetoed["unlined"])
     df.loc[drop, "changed"] = False
     df.loc[drop, "type"] = ""
     df.loc[drop, ["partner", "instance", "place"]] = 0
